@@ -1,0 +1,121 @@
+"""The in-memory capture: frames, cameras, lazily loaded images and masks, the scene box."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from ..cameras import Camera
+from ..classes import ClassMap
+from ..errors import CaptureError  # noqa: F401  (re-exported)
+
+
+@dataclass(frozen=True)
+class SceneNormalization:
+    """Maps world coordinates to the unit cube [-1, 1]^3 the field lives in.
+
+    ``x_unit = (x_world - center) / scale``. The region of interest (ROI) is the cube of
+    half-size ``scale`` around ``center``; see ``capture.normalize.region_of_interest``
+    for how it is chosen. Outputs (meshes, areas) are mapped back with ``to_world``.
+    """
+
+    center: np.ndarray  # (3,)
+    scale: float
+
+    def to_unit(self, points: np.ndarray) -> np.ndarray:
+        return (np.asarray(points, dtype=np.float64) - self.center) / self.scale
+
+    def to_world(self, points: np.ndarray) -> np.ndarray:
+        return np.asarray(points, dtype=np.float64) * self.scale + self.center
+
+    def camera_to_unit(self, camera: Camera) -> Camera:
+        c2w = camera.c2w.copy()
+        c2w[:3, 3] = self.to_unit(c2w[:3, 3])
+        return camera.with_c2w(c2w)
+
+    def to_json(self) -> dict:
+        return {"center": [float(v) for v in self.center], "scale": float(self.scale)}
+
+    @classmethod
+    def from_json(cls, data: dict) -> "SceneNormalization":
+        return cls(center=np.asarray(data["center"], dtype=np.float64), scale=float(data["scale"]))
+
+
+@dataclass
+class Frame:
+    """One frame of the capture. Pixel data is read on demand, never cached here."""
+
+    name: str  # image stem: the key shared by images/, annotations/, predictions/, masks/
+    image_path: Path
+    camera: Camera  # world coordinates, as in the capture's files
+    annotation_path: Path | None = None
+    prediction_path: Path | None = None
+
+    @property
+    def size(self) -> tuple[int, int]:
+        """(width, height)."""
+        return self.camera.width, self.camera.height
+
+
+@dataclass
+class Capture:
+    """A capture folder as read (never written) by labelsynth."""
+
+    root: Path
+    frames: list[Frame]
+    classes: ClassMap = field(default_factory=ClassMap.default)
+    normalization: SceneNormalization | None = None
+    points: np.ndarray | None = None  # (P,3) sparse SfM points in world coordinates, if any
+    # Colour -> class id table for RGB masks (from classes.json colours or a CVAT labelmap.txt).
+    color_table: dict[tuple[int, int, int], int] | None = None
+    white_background: bool = False  # RGBA images are composited on white (Blender scenes) or black
+    source: str = "transforms.json"
+
+    def __len__(self) -> int:
+        return len(self.frames)
+
+    @property
+    def names(self) -> list[str]:
+        return [f.name for f in self.frames]
+
+    @property
+    def has_annotations(self) -> bool:
+        return any(f.annotation_path is not None for f in self.frames)
+
+    @property
+    def has_predictions(self) -> bool:
+        return any(f.prediction_path is not None for f in self.frames)
+
+    def frame(self, name: str) -> Frame:
+        for f in self.frames:
+            if f.name == name:
+                return f
+        raise KeyError(name)
+
+    # Pixel loaders: implemented in capture.images / capture.masks, bound here for convenience.
+    def load_image(self, index: int) -> np.ndarray:
+        """(H,W,3) uint8 RGB of frame ``index`` (alpha composited)."""
+        from .images import read_image
+
+        return read_image(self.frames[index].image_path, self.frames[index].size, self.white_background)
+
+    def load_annotation(self, index: int) -> np.ndarray | None:
+        """(H,W) uint8 class ids of the expert mask, 255 = ignore; None if not annotated."""
+        from .masks import read_mask
+
+        f = self.frames[index]
+        return None if f.annotation_path is None else read_mask(f.annotation_path, f.size, self.classes, self.color_table)
+
+    def load_prediction(self, index: int) -> np.ndarray | None:
+        """(H,W) uint8 class ids of the automatic mask; None if there is none."""
+        from .masks import read_mask
+
+        f = self.frames[index]
+        return None if f.prediction_path is None else read_mask(f.prediction_path, f.size, self.classes, self.color_table)
+
+    def unit_cameras(self) -> list[Camera]:
+        """Cameras in the normalised unit-cube coordinates the field uses."""
+        assert self.normalization is not None
+        return [self.normalization.camera_to_unit(f.camera) for f in self.frames]
