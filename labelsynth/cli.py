@@ -113,6 +113,30 @@ def demo(
     typer.echo(summary)
 
 
+@app.command()
+@friendly_errors
+def segment(
+    capture: Path = typer.Argument(..., help="Capture folder with images/."),
+    model: Path = typer.Option(..., "--model", help="ONNX segmenter: input NCHW RGB (pixel_values), output logits (N,C,h,w)."),
+    out: Optional[Path] = typer.Option(None, "--out", help="Folder for <image stem>.png class-id masks."),
+    into_capture: bool = typer.Option(False, "--into-capture", help="Write CAPTURE/predictions/ instead of --out."),
+    input_size: Optional[str] = typer.Option(None, "--input-size", help="WxH for models without a fixed input size (default 512x512)."),
+    id_map: Optional[str] = typer.Option(None, "--id-map", help="Model index -> class id, e.g. 0:0,1:1,2:3; unmapped indices keep their number; 255 = ignore."),
+    device: str = typer.Option("auto", help="auto | cpu | cuda"),
+    batch_size: int = typer.Option(1, "--batch-size", min=1, help="Frames per model call."),
+    force: bool = typer.Option(False, help="With --into-capture: replace existing predictions."),
+) -> None:
+    """Run a 2D ONNX segmenter over every frame (the "2D" baseline) and write class-id masks."""
+    from .segment import resolve_out_dir, segment_capture
+
+    out_dir = resolve_out_dir(capture, out, into_capture)
+    report = segment_capture(
+        capture, model, out_dir, input_size=input_size, id_map=id_map, device=device,
+        batch_size=batch_size, overwrite=force or not into_capture,
+    )
+    typer.echo(report.summary())
+
+
 def main() -> None:  # pragma: no cover - console entry point alias
     app(prog_name="labelsynth")
 
