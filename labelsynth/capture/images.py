@@ -1,0 +1,95 @@
+"""Reading frames as (H,W,3) uint8 RGB, whatever the file's bit depth or channel count.
+
+Images are read with OpenCV's ``IMREAD_UNCHANGED`` so that alpha survives (Blender scenes
+are RGBA) and EXIF orientation is *not* applied: poses from COLMAP and nerfstudio refer to
+the stored pixel grid, so rotating the pixels would break the cameras.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from ..errors import CaptureError
+
+IMAGE_EXTENSIONS: tuple[str, ...] = (".png", ".jpg", ".jpeg", ".PNG", ".JPG", ".JPEG")
+
+
+def image_size(path: str | Path) -> tuple[int, int]:
+    """(width, height) of an image from its header only (cheap: no pixel decoding)."""
+    from PIL import Image
+
+    path = Path(path)
+    try:
+        with Image.open(path) as im:
+            return int(im.size[0]), int(im.size[1])
+    except (OSError, ValueError) as exc:
+        raise CaptureError(f"{path}: cannot read image ({exc})") from exc
+
+
+def _to_uint8(img: np.ndarray, path: Path) -> np.ndarray:
+    if img.dtype == np.uint8:
+        return img
+    if img.dtype == np.uint16:
+        return (img.astype(np.float32) / 257.0 + 0.5).astype(np.uint8)
+    if img.dtype in (np.float32, np.float64):  # e.g. EXR/TIFF in [0, 1]
+        return (np.clip(img, 0.0, 1.0) * 255.0 + 0.5).astype(np.uint8)
+    raise CaptureError(f"{path}: unsupported image pixel type {img.dtype}")
+
+
+def read_image(
+    path: str | Path,
+    size: tuple[int, int] | None = None,
+    white_background: bool = False,
+) -> np.ndarray:
+    """Read an image as (H,W,3) uint8 RGB.
+
+    RGBA is composited on white (``white_background``, the Blender convention) or black;
+    grayscale is replicated to RGB; 16-bit is scaled to 8-bit. ``size`` = (width, height)
+    the camera expects: a different size is an error, since intrinsics would not fit.
+    """
+    path = Path(path)
+    img = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+    if img is None:
+        raise CaptureError(f"{path}: cannot read image (missing, empty or not an image)")
+    img = _to_uint8(img, path)
+    if img.ndim == 2:
+        rgb = np.repeat(img[:, :, None], 3, axis=2)
+    elif img.ndim == 3 and img.shape[2] == 1:
+        rgb = np.repeat(img, 3, axis=2)
+    elif img.ndim == 3 and img.shape[2] == 3:
+        rgb = cv2.cvtColor(img, cv2.COLOR_BGR2RGB)
+    elif img.ndim == 3 and img.shape[2] == 4:
+        rgb = composite_alpha(cv2.cvtColor(img, cv2.COLOR_BGRA2RGBA), white_background)
+    else:
+        raise CaptureError(f"{path}: unsupported image layout {img.shape}")
+    if size is not None:
+        w, h = int(size[0]), int(size[1])
+        if rgb.shape[1] != w or rgb.shape[0] != h:
+            raise CaptureError(
+                f"{path}: image is {rgb.shape[1]}x{rgb.shape[0]} but its camera expects {w}x{h}"
+            )
+    return np.ascontiguousarray(rgb)
+
+
+def composite_alpha(rgba: np.ndarray, white_background: bool) -> np.ndarray:
+    """(H,W,4) uint8 RGBA -> (H,W,3) uint8 RGB over a white or black background."""
+    rgb = rgba[:, :, :3].astype(np.float32)
+    alpha = rgba[:, :, 3:4].astype(np.float32) / 255.0
+    bg = 255.0 if white_background else 0.0
+    out = rgb * alpha + bg * (1.0 - alpha)
+    return (out + 0.5).astype(np.uint8)
+
+
+def find_image(base: Path) -> Path | None:
+    """``base`` itself if it exists, else ``base`` + a known image extension (Blender's
+    ``file_path`` has none), else None."""
+    if base.is_file():
+        return base
+    for ext in IMAGE_EXTENSIONS:
+        candidate = base.with_name(base.name + ext)
+        if candidate.is_file():
+            return candidate
+    return None

@@ -1,0 +1,131 @@
+"""``load_capture``: a capture folder -> ``Capture`` (read-only; nothing is ever written there).
+
+Pose sources, first found wins: ``transforms.json``; ``transforms_train.json`` (the
+NeRF-synthetic layout, which has no plain ``transforms.json``); a COLMAP model in
+``sparse/0``. Without any, the error tells the user to run ``labelsynth poses CAPTURE``.
+"""
+
+from __future__ import annotations
+
+import warnings
+from pathlib import Path
+
+from ..classes import ClassMap
+from ..errors import CaptureError
+from .colmap import find_sparse_model, read_colmap
+from .masks import MASK_EXTENSIONS, color_table_for, mask_size
+from .model import Capture, Frame
+from .normalize import region_of_interest
+from .transforms import PosedFrames, read_transforms
+
+TRANSFORMS_NAMES = ("transforms.json", "transforms_train.json")
+MASK_FOLDERS = ("annotations", "predictions")
+LOSSY_EXTENSIONS = (".jpg", ".jpeg")
+
+
+def load_capture(path: str | Path, *, classes: ClassMap | None = None) -> Capture:
+    """Read a capture folder: poses, frames, mask paths, classes, colour table, ROI.
+
+    Pixels are not read here (except one image header when ``w``/``h`` are missing); mask
+    sizes are checked when a mask is read, or all at once by ``validate_capture``.
+    Frames whose image is missing are skipped with one warning (with their masks).
+    """
+    root = Path(path)
+    if not root.is_dir():
+        raise CaptureError(f"{root}: capture folder not found")
+
+    posed = _read_poses(root)
+    if posed.skipped:
+        shown = ", ".join(posed.skipped[:5]) + (" ..." if len(posed.skipped) > 5 else "")
+        warnings.warn(
+            f"{root}: {len(posed.skipped)} frame(s) skipped because their image file is missing ({shown})",
+            stacklevel=2,
+        )
+    if not posed.frames:
+        raise CaptureError(f"{root}: none of the {len(posed.skipped)} posed frames has an image file")
+    _check_unique_names(posed.frames, root)
+
+    if classes is None:
+        classes_json = root / "classes.json"
+        classes = ClassMap.from_json(classes_json) if classes_json.is_file() else ClassMap.default()
+    labelmap = root / "labelmap.txt"
+    color_table = color_table_for(classes, labelmap if labelmap.is_file() else None)
+
+    frames_by_name = {f.name: f for f in posed.frames}
+    for folder in MASK_FOLDERS:
+        for name, mask_path in _mask_files(root / folder).items():
+            frame = frames_by_name.get(name)
+            if frame is None:
+                if name in posed.skipped:
+                    continue  # its frame was skipped (missing image); already warned
+                raise CaptureError(f"{mask_path}: no frame named '{name}' (masks are named <image stem>.png)")
+            setattr(frame, "annotation_path" if folder == "annotations" else "prediction_path", mask_path)
+
+    cameras = [f.camera for f in posed.frames]
+    return Capture(
+        root=root,
+        frames=posed.frames,
+        classes=classes,
+        normalization=region_of_interest(cameras, posed.points),
+        points=posed.points,
+        color_table=color_table,
+        white_background=posed.white_background,
+        source=posed.source,
+    )
+
+
+def validate_capture(capture: Capture) -> None:
+    """Check every mask's size against its frame from the PNG headers (fast, no decoding);
+    raise a ``CaptureError`` naming the first mask that does not fit."""
+    for frame in capture.frames:
+        for mask_path in (frame.annotation_path, frame.prediction_path):
+            if mask_path is None:
+                continue
+            size = mask_size(mask_path)
+            if size != frame.size:
+                raise CaptureError(
+                    f"{mask_path}: mask is {size[0]}x{size[1]} but its image is {frame.size[0]}x{frame.size[1]}"
+                )
+
+
+def _read_poses(root: Path) -> PosedFrames:
+    for name in TRANSFORMS_NAMES:
+        if (root / name).is_file():
+            return read_transforms(root / name)
+    model = find_sparse_model(root)
+    if model is not None:
+        return read_colmap(model, root / "images")
+    raise CaptureError(
+        f"{root}: no camera poses (no transforms.json and no COLMAP sparse/0); "
+        f"run `labelsynth poses {root}` to estimate them"
+    )
+
+
+def _check_unique_names(frames: list[Frame], root: Path) -> None:
+    seen: dict[str, Path] = {}
+    for f in frames:
+        if f.name in seen:
+            raise CaptureError(
+                f"{f.image_path}: frame name '{f.name}' is also used by {seen[f.name]}; "
+                "image stems must be unique (masks are matched by stem)"
+            )
+        seen[f.name] = f.image_path
+    frames.sort(key=lambda f: f.name)
+
+
+def _mask_files(folder: Path) -> dict[str, Path]:
+    """stem -> mask path for the PNGs in ``folder`` (hidden files and non-images ignored)."""
+    if not folder.is_dir():
+        return {}
+    found: dict[str, Path] = {}
+    for p in sorted(folder.iterdir()):
+        if p.name.startswith(".") or not p.is_file():
+            continue
+        if p.suffix.lower() in LOSSY_EXTENSIONS:
+            raise CaptureError(f"{p}: masks must be PNG (JPEG compression changes class ids at edges)")
+        if p.suffix not in MASK_EXTENSIONS:
+            continue
+        if p.stem in found:
+            raise CaptureError(f"{p}: two masks for frame '{p.stem}' ({found[p.stem].name} and {p.name})")
+        found[p.stem] = p
+    return found

@@ -1,0 +1,236 @@
+"""Masks in, masks out: every supported mask format becomes (H,W) uint8 class ids, 255 = ignore.
+
+Formats read (see DESIGN.md, "Capture folder"):
+
+- single-channel PNG of class ids (8 or 16 bit);
+- palette PNG: when the palette colours of every used index are class colours (Pascal VOC,
+  CVAT exports, our own outputs) pixels are mapped *by colour*; otherwise the indices are
+  taken as class ids. Index 255 is always ignore (VOC's boundary/void index);
+- RGB(A) colour PNG, mapped through the colour table (``classes.json`` colours, overridden
+  by a CVAT ``labelmap.txt``); VOC's boundary colour (224,224,192) means ignore, and fully
+  transparent pixels are ignore. A grey RGB image whose values are all class ids is read
+  as ids (some tools save id masks as RGB).
+
+Masks are opened with PIL, not OpenCV: OpenCV silently turns palette PNGs into BGR and the
+indices are lost.
+"""
+
+from __future__ import annotations
+
+import warnings
+from pathlib import Path
+
+import numpy as np
+
+from ..classes import BACKGROUND_ID, IGNORE_ID, ClassMap
+from ..errors import CaptureError, ClassMapError
+
+ColorTable = dict[tuple[int, int, int], int]
+
+VOC_BOUNDARY_COLOR: tuple[int, int, int] = (224, 224, 192)
+MASK_EXTENSIONS: tuple[str, ...] = (".png", ".PNG")
+
+
+# --- colour tables ------------------------------------------------------------------------
+def color_table_for(classes: ClassMap, labelmap: str | Path | None = None) -> ColorTable:
+    """Colour -> class id: class colours, then CVAT ``labelmap.txt`` colours (which win),
+    then VOC's boundary colour -> ignore."""
+    table: ColorTable = {}
+    for c in classes.classes:
+        table.setdefault(tuple(int(v) for v in c.color), c.id)
+    if labelmap is not None:
+        table.update(read_labelmap(labelmap, classes))
+    table.setdefault(VOC_BOUNDARY_COLOR, IGNORE_ID)
+    return table
+
+
+def read_labelmap(path: str | Path, classes: ClassMap) -> ColorTable:
+    """Parse CVAT's ``labelmap.txt`` (``name:r,g,b:parts:actions`` per line) into colour -> id.
+
+    Names are matched to class names case-insensitively (``background`` is id 0). Labels the
+    class map does not know are skipped with a warning: a mask that uses their colour then
+    fails with an "unknown colour" error, while unused labels do no harm.
+    """
+    path = Path(path)
+    try:
+        text = path.read_text(encoding="utf-8")
+    except (OSError, UnicodeDecodeError) as exc:
+        raise ClassMapError(f"{path}: cannot read labelmap ({exc})") from exc
+    by_name = {c.name.lower(): c.id for c in classes.classes}
+    by_name.setdefault("background", BACKGROUND_ID)
+    table: ColorTable = {}
+    unknown: list[str] = []
+    for lineno, line in enumerate(text.splitlines(), start=1):
+        line = line.strip()
+        if not line or line.startswith("#"):
+            continue
+        fields = line.split(":")
+        try:
+            name = fields[0].strip()
+            rgb = tuple(int(v) for v in fields[1].split(","))
+            if len(rgb) != 3 or not all(0 <= v <= 255 for v in rgb):
+                raise ValueError("colour must be r,g,b in 0..255")
+        except (IndexError, ValueError) as exc:
+            raise ClassMapError(f"{path}: line {lineno} is not 'name:r,g,b:parts:actions' ({exc})") from exc
+        class_id = by_name.get(name.lower())
+        if class_id is None:
+            unknown.append(name)
+            continue
+        table[rgb] = class_id  # type: ignore[index]
+    if unknown:
+        warnings.warn(
+            f"{path}: {len(unknown)} label(s) not in the class map, ignored: {', '.join(unknown)}",
+            stacklevel=2,
+        )
+    return table
+
+
+# --- reading ------------------------------------------------------------------------------
+def mask_size(path: str | Path) -> tuple[int, int]:
+    """(width, height) from the PNG header, without decoding pixels."""
+    from PIL import Image
+
+    path = Path(path)
+    try:
+        with Image.open(path) as im:
+            return int(im.size[0]), int(im.size[1])
+    except (OSError, ValueError) as exc:
+        raise CaptureError(f"{path}: cannot read mask ({exc})") from exc
+
+
+def read_mask(
+    path: str | Path,
+    size: tuple[int, int] | None,
+    classes: ClassMap,
+    color_table: ColorTable | None = None,
+) -> np.ndarray:
+    """Read a mask file as (H,W) uint8 class ids (255 = ignore).
+
+    ``size`` = (width, height) of the frame; a mask of another size, unknown ids or
+    unknown colours raise a one-line ``CaptureError`` naming the file.
+    """
+    from PIL import Image
+
+    path = Path(path)
+    if color_table is None:
+        color_table = color_table_for(classes)
+    try:
+        with Image.open(path) as im:
+            im.load()
+            mode = im.mode
+            if size is not None and tuple(im.size) != (int(size[0]), int(size[1])):
+                raise CaptureError(
+                    f"{path}: mask is {im.size[0]}x{im.size[1]} but its image is {int(size[0])}x{int(size[1])}"
+                )
+            if mode == "P":
+                indices = np.asarray(im, dtype=np.uint8)
+                palette = np.asarray(im.getpalette() or [], dtype=np.uint8).reshape(-1, 3)
+                mask = _from_palette(indices, palette, classes, color_table, path)
+            elif mode in ("RGB", "RGBA"):
+                mask = _from_color(np.asarray(im), classes, color_table, path)
+            elif mode == "LA":
+                mask = _from_ids(np.asarray(im)[:, :, 0], classes, path)
+            elif mode in ("L", "1", "I", "I;16", "I;16B", "I;16L"):
+                mask = _from_ids(np.asarray(im), classes, path)
+            else:
+                raise CaptureError(f"{path}: unsupported mask mode {mode!r}; use a single-channel PNG of class ids")
+    except CaptureError:
+        raise
+    except (OSError, ValueError, SyntaxError) as exc:
+        raise CaptureError(f"{path}: cannot read mask ({exc})") from exc
+    return mask
+
+
+def _check_ids(ids: np.ndarray, classes: ClassMap, path: Path) -> np.ndarray:
+    valid = np.zeros(65536 if ids.dtype != np.uint8 else 256, dtype=bool)
+    valid[classes.ids] = True
+    valid[IGNORE_ID] = True
+    if ids.dtype not in (np.uint8, np.uint16):
+        if ids.size and (ids.min() < 0 or ids.max() > 65535):
+            raise CaptureError(f"{path}: mask values out of range ({int(ids.min())}..{int(ids.max())})")
+        ids = ids.astype(np.uint16)
+    bad = ~valid[ids]
+    if bad.any():
+        unknown = np.unique(ids[bad])
+        shown = ", ".join(str(int(v)) for v in unknown[:8]) + (" ..." if len(unknown) > 8 else "")
+        raise CaptureError(
+            f"{path}: {int(bad.sum())} pixels have class ids not in the class map ({shown}); "
+            f"known ids: {', '.join(str(int(i)) for i in classes.ids)} and 255 = ignore"
+        )
+    return ids.astype(np.uint8)
+
+
+def _from_ids(ids: np.ndarray, classes: ClassMap, path: Path) -> np.ndarray:
+    if ids.dtype == bool:
+        ids = ids.astype(np.uint8)
+    return _check_ids(ids, classes, path)
+
+
+def _from_palette(
+    indices: np.ndarray, palette: np.ndarray, classes: ClassMap, table: ColorTable, path: Path
+) -> np.ndarray:
+    used = [int(u) for u in np.unique(indices) if u != IGNORE_ID]
+    colors = [tuple(int(v) for v in palette[u]) if u < len(palette) else None for u in used]
+    own = {c.id: tuple(int(v) for v in c.color) for c in classes.classes}
+    if all(own.get(u) == c for u, c in zip(used, colors)):  # our own outputs: ids with class colours
+        return indices.copy()
+    if used and all(c is not None and c in table for c in colors):
+        lut = np.arange(256, dtype=np.uint8)
+        for u, c in zip(used, colors):
+            lut[u] = table[c]  # type: ignore[index]
+        lut[IGNORE_ID] = IGNORE_ID
+        return lut[indices]
+    return _check_ids(indices, classes, path)
+
+
+def _from_color(rgb: np.ndarray, classes: ClassMap, table: ColorTable, path: Path) -> np.ndarray:
+    transparent = None
+    if rgb.shape[2] == 4:
+        transparent = rgb[:, :, 3] == 0
+        rgb = rgb[:, :, :3]
+    rgb = np.ascontiguousarray(rgb, dtype=np.uint8)
+    packed = (rgb[:, :, 0].astype(np.uint32) << 16) | (rgb[:, :, 1].astype(np.uint32) << 8) | rgb[:, :, 2]
+    uniq, inverse = np.unique(packed.ravel(), return_inverse=True)
+    ids = np.full(len(uniq), -1, dtype=np.int64)
+    for i, p in enumerate(uniq):
+        ids[i] = table.get((int(p >> 16), int((p >> 8) & 255), int(p & 255)), -1)
+    out = ids[inverse].reshape(packed.shape)
+    unknown = out < 0
+    if transparent is not None:
+        unknown &= ~transparent
+    if unknown.any():
+        grey = (rgb[:, :, 0] == rgb[:, :, 1]) & (rgb[:, :, 1] == rgb[:, :, 2])
+        if grey.all():  # an id mask saved as RGB: accept it only if every value is a class id
+            try:
+                return _check_ids(rgb[:, :, 0].copy(), classes, path)
+            except CaptureError:
+                pass
+        ys, xs = np.nonzero(unknown)
+        r, g, b = (int(v) for v in rgb[ys[0], xs[0]])
+        raise CaptureError(
+            f"{path}: {int(unknown.sum())} pixels have colours not in the class colours, "
+            f"e.g. RGB ({r},{g},{b}) at x={int(xs[0])} y={int(ys[0])}; add it to classes.json or labelmap.txt"
+        )
+    if transparent is not None:
+        out[transparent] = IGNORE_ID
+    return out.astype(np.uint8)
+
+
+# --- writing ------------------------------------------------------------------------------
+def write_mask(path: str | Path, mask: np.ndarray, classes: ClassMap) -> None:
+    """Write (H,W) class ids as a single-channel palette PNG: the pixel values are the ids
+    (what training code reads) and the palette shows class colours in any image viewer."""
+    from PIL import Image
+
+    mask = np.asarray(mask)
+    if mask.ndim != 2:
+        raise ValueError(f"a mask must be (H,W), got shape {mask.shape}")
+    if mask.dtype != np.uint8:
+        if mask.size and (mask.min() < 0 or mask.max() > 255):
+            raise ValueError("mask values must be in 0..255")
+        mask = mask.astype(np.uint8)
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    im = Image.frombytes("P", (mask.shape[1], mask.shape[0]), np.ascontiguousarray(mask).tobytes())
+    im.putpalette(classes.palette())
+    im.save(path, format="PNG")
