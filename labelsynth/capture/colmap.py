@@ -91,5 +91,6 @@ def read_colmap(model_dir: str | Path, images_dir: str | Path) -> PosedFrames:
 
     points = None
     if rec.num_points3D() > 0:
-        points = np.array([p.xyz for p in rec.points3D.values()], dtype=np.float64).reshape(-1, 3)
+        pts = rec.points3D
+        points = np.array([pts[i].xyz for i in sorted(pts)], dtype=np.float64).reshape(-1, 3)
     return PosedFrames(frames=frames, skipped=skipped, points=points, source=f"colmap:{model_dir}")
