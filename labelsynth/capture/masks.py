@@ -3,11 +3,13 @@
 Formats read (see DESIGN.md, "Capture folder"):
 
 - single-channel PNG of class ids (8 or 16 bit);
-- palette PNG: when the palette colours of every used index are class colours (Pascal VOC,
-  CVAT exports, our own outputs) pixels are mapped *by colour*; otherwise the indices are
-  taken as class ids. Index 255 is always ignore (VOC's boundary/void index);
+- palette PNG: indices are kept when each used index carries its own class's colour (our
+  outputs, ``write_mask``); else, when the colours of every used index are class colours
+  (Pascal VOC, CVAT exports with their own index order) pixels are mapped *by colour*;
+  otherwise the indices are taken as class ids. Index 255 is always ignore (VOC's void);
 - RGB(A) colour PNG, mapped through the colour table (``classes.json`` colours, overridden
-  by a CVAT ``labelmap.txt``); VOC's boundary colour (224,224,192) means ignore, and fully
+  by a CVAT ``labelmap.txt``); VOC's boundary colour (224,224,192) and the grey that
+  ``ClassMap.colorize`` gives ignore (128,128,128) mean ignore, and fully
   transparent pixels are ignore. A grey RGB image whose values are all class ids is read
   as ids (some tools save id masks as RGB).
 
@@ -28,19 +30,21 @@ from ..errors import CaptureError, ClassMapError
 ColorTable = dict[tuple[int, int, int], int]
 
 VOC_BOUNDARY_COLOR: tuple[int, int, int] = (224, 224, 192)
+IGNORE_COLOR: tuple[int, int, int] = (128, 128, 128)  # ClassMap.palette()/colorize() grey for 255
 MASK_EXTENSIONS: tuple[str, ...] = (".png", ".PNG")
 
 
 # --- colour tables ------------------------------------------------------------------------
 def color_table_for(classes: ClassMap, labelmap: str | Path | None = None) -> ColorTable:
     """Colour -> class id: class colours, then CVAT ``labelmap.txt`` colours (which win),
-    then VOC's boundary colour -> ignore."""
+    then VOC's boundary colour and our own ignore grey -> ignore (unless a class uses them)."""
     table: ColorTable = {}
     for c in classes.classes:
         table.setdefault(tuple(int(v) for v in c.color), c.id)
     if labelmap is not None:
         table.update(read_labelmap(labelmap, classes))
     table.setdefault(VOC_BOUNDARY_COLOR, IGNORE_ID)
+    table.setdefault(IGNORE_COLOR, IGNORE_ID)
     return table
 
 
