@@ -28,7 +28,8 @@ def region_of_interest(cameras: Sequence[Camera], points: np.ndarray | None = No
          capture that keeps the wound in view). If the axes are (nearly) parallel, or the
          point lies behind the cameras, it is undefined; then the centre is the mean camera
          centre moved along the mean viewing direction by twice the cameras' spread (a
-         guess, since parallel axes carry no depth).
+         guess, since parallel axes carry no depth; the half-size then grows to at least
+         that depth so that the cube reaches from the cameras to twice as far).
       2. With SfM points: the per-axis median of the points seen inside at least 2 views
          (at least 1 if too few qualify; the axes centre if still too few). SfM points lie
          on the surface, so they beat any guess from the axes, and the median ignores
@@ -44,7 +45,7 @@ def region_of_interest(cameras: Sequence[Camera], points: np.ndarray | None = No
     centres = np.array([c.center for c in cameras])
     forwards = np.array([c.forward for c in cameras])
 
-    centre = _axes_centre(centres, forwards)
+    centre, guessed_depth = _axes_centre(centres, forwards)
     kept = _visible_points(cameras, points)
     if kept is not None:
         centre = np.median(kept, axis=0)
@@ -54,6 +55,8 @@ def region_of_interest(cameras: Sequence[Camera], points: np.ndarray | None = No
     tan_half = float(np.median([max(0.5 * c.width / c.fx, 0.5 * c.height / c.fy) for c in cameras]))
     half = d_med * tan_half * FOOTPRINT_MARGIN
 
+    if kept is None and guessed_depth is not None:
+        half = max(half, guessed_depth)  # depth unknown: reach from the cameras to twice the guess
     if kept is not None:
         r = np.linalg.norm(kept - centre, axis=1)
         r_med = float(np.median(r))
@@ -68,8 +71,9 @@ def region_of_interest(cameras: Sequence[Camera], points: np.ndarray | None = No
     return SceneNormalization(center=np.asarray(centre, dtype=np.float64), scale=float(half))
 
 
-def _axes_centre(centres: np.ndarray, forwards: np.ndarray) -> np.ndarray:
-    """Least-squares intersection of the optical axes, with a fallback when it is undefined."""
+def _axes_centre(centres: np.ndarray, forwards: np.ndarray) -> tuple[np.ndarray, float | None]:
+    """Least-squares intersection of the optical axes, and None; or, when it is undefined,
+    a point guessed along the mean viewing direction and the guessed depth."""
     n = len(centres)
     projectors = np.eye(3)[None] - forwards[:, :, None] * forwards[:, None, :]  # (N,3,3)
     A = projectors.sum(0)
@@ -79,13 +83,13 @@ def _axes_centre(centres: np.ndarray, forwards: np.ndarray) -> np.ndarray:
         x = np.linalg.solve(A, b)
         depths = np.einsum("ni,ni->n", x - centres, forwards)
         if np.median(depths) > 0:
-            return x
+            return x, None
     mean_forward = forwards.mean(0)
     norm = np.linalg.norm(mean_forward)
     mean_forward = mean_forward / norm if norm > 1e-9 else forwards[0]
     spread = float(np.median(np.linalg.norm(centres - centres.mean(0), axis=1))) if n > 1 else 0.0
     depth = 2.0 * spread if spread > 1e-9 else 1.0
-    return centres.mean(0) + depth * mean_forward
+    return centres.mean(0) + depth * mean_forward, depth
 
 
 def _visible_points(cameras: list[Camera], points: np.ndarray | None) -> np.ndarray | None:
