@@ -185,6 +185,8 @@ def test_image_size_mismatch_names_file(tmp_path) -> None:
     cap = load_capture(root)
     with pytest.raises(CaptureError, match="frame_001.png.*34x24.*32x24"):
         cap.load_image(1)
+    with pytest.raises(CaptureError, match="frame_001.png.*34x24.*32x24"):
+        validate_capture(cap)
 
 
 def test_no_poses_tells_to_run_poses(tmp_path) -> None:
@@ -205,3 +207,17 @@ def test_classes_json_and_override(tmp_path) -> None:
     cap = load_capture(root, classes=override)
     assert cap.classes is override
     validate_capture(cap)  # no masks: nothing to complain about
+
+
+def test_nerfstudio_point_cloud_used_for_roi(tmp_path) -> None:
+    import trimesh
+
+    root = make_capture(tmp_path / "cap", n=4, extra={"ply_file_path": "sparse_pc.ply"})
+    rng = np.random.default_rng(0)
+    pts = rng.normal(0, 0.05, (200, 3)) + [0.1, 0.0, 0.0]
+    trimesh.PointCloud(pts).export(root / "sparse_pc.ply")
+    before = snapshot(root)
+    cap = load_capture(root)
+    assert snapshot(root) == before
+    np.testing.assert_allclose(cap.points, pts, atol=1e-6)
+    np.testing.assert_allclose(cap.normalization.center, np.median(pts, axis=0), atol=1e-6)

@@ -13,6 +13,7 @@ from pathlib import Path
 from ..classes import ClassMap
 from ..errors import CaptureError
 from .colmap import find_sparse_model, read_colmap
+from .images import image_size
 from .masks import MASK_EXTENSIONS, color_table_for, mask_size
 from .model import Capture, Frame
 from .normalize import region_of_interest
@@ -75,9 +76,15 @@ def load_capture(path: str | Path, *, classes: ClassMap | None = None) -> Captur
 
 
 def validate_capture(capture: Capture) -> None:
-    """Check every mask's size against its frame from the PNG headers (fast, no decoding);
-    raise a ``CaptureError`` naming the first mask that does not fit."""
+    """Check every image's and mask's size against its camera from the file headers (fast,
+    no decoding), so that a bad file fails before training rather than after; raise a
+    ``CaptureError`` naming the first file that does not fit."""
     for frame in capture.frames:
+        size = image_size(frame.image_path)
+        if size != frame.size:
+            raise CaptureError(
+                f"{frame.image_path}: image is {size[0]}x{size[1]} but its camera expects {frame.size[0]}x{frame.size[1]}"
+            )
         for mask_path in (frame.annotation_path, frame.prediction_path):
             if mask_path is None:
                 continue

@@ -33,7 +33,7 @@ import numpy as np
 
 from ..cameras import Camera
 from ..errors import CaptureError
-from .images import find_image, image_size
+from .images import IMAGE_EXTENSIONS, find_image, image_size
 from .model import Frame
 
 SUPPORTED_MODELS = {"OPENCV", "PINHOLE", "SIMPLE_PINHOLE"}
@@ -88,7 +88,7 @@ def read_transforms(path: str | Path) -> PosedFrames:
         base = root / _clean_relpath(file_path)
         image_path = find_image(base)
         if image_path is None:
-            skipped.append(Path(file_path).stem if Path(file_path).suffix.lower() in (".png", ".jpg", ".jpeg") else Path(file_path).name)
+            skipped.append(_stem(base))
             continue
         intr = {**shared, **{k: entry[k] for k in INTRINSIC_KEYS if k in entry}}
         if "w" not in intr or "h" not in intr:
@@ -102,6 +102,11 @@ def read_transforms(path: str | Path) -> PosedFrames:
     points = _read_points(root, data.get("ply_file_path"), path)
     return PosedFrames(frames=frames, skipped=skipped, points=points,
                        white_background=white_background, source=path.name)
+
+
+def _stem(base: Path) -> str:
+    """The frame name a missing image would have had (Blender paths have no extension)."""
+    return base.stem if base.suffix in IMAGE_EXTENSIONS else base.name
 
 
 def _clean_relpath(file_path: str) -> str:
