@@ -45,6 +45,7 @@ def load_capture(path: str | Path, *, classes: ClassMap | None = None) -> Captur
     if not posed.frames:
         raise CaptureError(f"{root}: none of the {len(posed.skipped)} posed frames has an image file")
     _check_unique_names(posed.frames, root)
+    posed.frames.sort(key=lambda f: f.name)  # deterministic, whatever order the file lists
 
     if classes is None:
         classes_json = root / "classes.json"
@@ -117,7 +118,6 @@ def _check_unique_names(frames: list[Frame], root: Path) -> None:
                 "image stems must be unique (masks are matched by stem)"
             )
         seen[f.name] = f.image_path
-    frames.sort(key=lambda f: f.name)
 
 
 def _mask_files(folder: Path) -> dict[str, Path]:
