@@ -349,7 +349,7 @@ class _Scene:
         blotch = _fbm(rng, shape, ext_u / 0.25, octaves=3, aspect=ext_v / ext_u)
         red = _fbm(rng, shape, ext_u / 0.12, octaves=2, aspect=ext_v / ext_u)
         img *= (1.0 + 0.07 * blotch)[..., None]
-        img += np.array([14, -4, -5], np.float32) * np.clip(red, 0, None)[..., None]
+        img += np.array([9, -3, -3], np.float32) * np.clip(red, 0, None)[..., None]
         canvas = np.zeros(shape, np.uint8)  # darkening amount (x255), drawn anti-aliased
         # freckles and marks (a count proportional to the area, sizes at several scales)
         area = ext_u * ext_v
