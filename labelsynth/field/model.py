@@ -1,0 +1,125 @@
+"""A fitted semantic field: geometry + semantic head + what is needed to render and to reload."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+import torch
+import trimesh
+
+from ..cameras import Camera
+from ..capture.model import SceneNormalization
+from ..classes import ClassInfo, ClassMap
+from ..surface import SurfaceCaster, extract_mesh
+from .config import Recipe, _build
+from .rendering import OccupancyGrid
+from .sdf import SDFField
+from .semantic import SemanticHead
+from .training import make_semantic_head
+
+
+@dataclass
+class FrameRender:
+    """Per-pixel results for one frame at full resolution."""
+
+    mask: np.ndarray  # (H, W) uint8 class ids
+    confidence: np.ndarray  # (H, W) float32 max class probability
+    probabilities: np.ndarray | None = None  # (H, W, C) float16 when asked for
+    hit: np.ndarray | None = None  # (H, W) bool: the ray met the surface
+    points: np.ndarray | None = None  # (H, W, 3) unit-cube hit points (valid where hit)
+
+
+@dataclass
+class SemanticField:
+    sdf: SDFField
+    head: SemanticHead | None
+    grid: OccupancyGrid
+    classes: ClassMap
+    normalization: SceneNormalization
+    recipe: Recipe
+    device: torch.device
+    _mesh: trimesh.Trimesh | None = field(default=None, repr=False)
+    _caster: SurfaceCaster | None = field(default=None, repr=False)
+
+    # --- surface --------------------------------------------------------------------------
+    def mesh(self) -> trimesh.Trimesh:
+        """The surface in unit-cube coordinates (cached)."""
+        if self._mesh is None:
+            self._mesh = extract_mesh(self.sdf.sdf_batched, self.recipe.render.mesh_resolution, self.device)
+            self._caster = None
+        return self._mesh
+
+    def caster(self) -> SurfaceCaster:
+        if self._caster is None:
+            self._caster = SurfaceCaster(self.mesh())
+        return self._caster
+
+    # --- semantics ------------------------------------------------------------------------
+    @torch.no_grad()
+    def logits_at(self, points: np.ndarray | torch.Tensor) -> torch.Tensor:
+        """Class logits (N, C) at unit-cube points (dropout off)."""
+        assert self.head is not None, "the semantic stage has not been trained"
+        self.head.eval()
+        pts = torch.as_tensor(np.asarray(points, dtype=np.float32), device=self.device)
+        out = []
+        chunk = self.recipe.render.chunk
+        for s in range(0, len(pts), chunk):
+            p = pts[s : s + chunk]
+            _, feature = self.sdf.get_sdf(p)
+            out.append(self.head(feature, p))
+        if not out:
+            return torch.zeros(0, self.classes.num_classes, device=self.device)
+        return torch.cat(out)
+
+    def render(self, camera_unit: Camera, keep_probabilities: bool = False, keep_points: bool = False) -> FrameRender:
+        """Mask and confidence for every pixel of a camera given in unit-cube coordinates."""
+        h, w = camera_unit.height, camera_unit.width
+        hit, points, _ = self.caster().cast_camera(camera_unit)
+        c = self.classes.num_classes
+        probs = np.zeros((h * w, c), dtype=np.float32)
+        probs[:, self.classes.background_index] = 1.0
+        if hit.any():
+            probs[hit] = torch.softmax(self.logits_at(points[hit]), dim=-1).cpu().numpy()
+        index = probs.argmax(-1)
+        mask = self.classes.index_to_id_lut()[index].reshape(h, w)
+        conf = probs.max(-1).reshape(h, w)
+        return FrameRender(
+            mask=mask,
+            confidence=conf,
+            probabilities=probs.reshape(h, w, c).astype(np.float16) if keep_probabilities else None,
+            hit=hit.reshape(h, w),
+            points=points.reshape(h, w, 3) if keep_points else None,
+        )
+
+    # --- persistence ----------------------------------------------------------------------
+    def save(self, path: Path) -> None:
+        torch.save(
+            {
+                "sdf": self.sdf.state_dict(),
+                "head": None if self.head is None else self.head.state_dict(),
+                "grid": self.grid.state_dict(),
+                "classes": self.classes.to_json(),
+                "normalization": self.normalization.to_json(),
+                "recipe": self.recipe.to_dict(),
+            },
+            path,
+        )
+
+    @classmethod
+    def load(cls, path: Path, device: torch.device) -> "SemanticField":
+        state = torch.load(path, map_location=device, weights_only=False)
+        recipe = _build(Recipe, state["recipe"], str(path))
+        classes = ClassMap(tuple(ClassInfo(c["id"], c["name"], tuple(c["color"]), c["wound_bed"]) for c in state["classes"]["classes"]))
+        sdf = SDFField(recipe.geometry.sdf).to(device)
+        sdf.load_state_dict(state["sdf"])
+        sdf.eval()
+        grid = OccupancyGrid(state["grid"]["resolution"], device)
+        grid.load_state_dict(state["grid"])
+        head = None
+        if state["head"] is not None:
+            head = make_semantic_head(sdf, classes, recipe.semantic)
+            head.load_state_dict(state["head"])
+            head.eval()
+        return cls(sdf, head, grid, classes, SceneNormalization.from_json(state["normalization"]), recipe, device)

@@ -1,0 +1,118 @@
+"""The geometry field: a NeuS signed distance function with a colour head and a background.
+
+Split as nerfstudio does: ``get_sdf`` gives geometry (distance and a feature vector, what the
+semantic head reads), ``get_color`` the view-dependent appearance used only to fit geometry.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import torch
+from torch import nn
+from torch.nn import functional as F
+
+from .encoding import HashGridEncoding
+
+
+@dataclass
+class SDFConfig:
+    levels: int = 12
+    features_per_level: int = 2
+    log2_table: int = 17
+    base_resolution: int = 16
+    max_resolution: int = 1024
+    hidden: int = 64
+    feature_dim: int = 15  # geometry feature handed to the colour and semantic heads
+    color_hidden: int = 64
+    init_radius: float = 0.5  # geometric initialisation: a sphere of this radius
+    init_variance: float = 0.3  # inv_s = exp(10 * variance)
+
+
+def _sh_deg2(d: torch.Tensor) -> torch.Tensor:
+    """Real spherical harmonics up to degree 2 (9 values): a smooth code for view direction."""
+    x, y, z = d.unbind(-1)
+    return torch.stack(
+        [
+            torch.full_like(x, 0.28209479),
+            -0.48860251 * y,
+            0.48860251 * z,
+            -0.48860251 * x,
+            1.09254843 * x * y,
+            -1.09254843 * y * z,
+            0.31539157 * (2 * z * z - x * x - y * y),
+            -1.09254843 * x * z,
+            0.54627421 * (x * x - y * y),
+        ],
+        dim=-1,
+    )
+
+
+class SDFField(nn.Module):
+    """x in the unit cube -> signed distance (positive outside) and a geometry feature."""
+
+    def __init__(self, cfg: SDFConfig | None = None) -> None:
+        super().__init__()
+        self.cfg = cfg = cfg or SDFConfig()
+        self.encoding = HashGridEncoding(
+            cfg.levels, cfg.features_per_level, cfg.log2_table, cfg.base_resolution, cfg.max_resolution
+        )
+        in_dim = 3 + self.encoding.output_dim
+        self.sdf_l0 = nn.Linear(in_dim, cfg.hidden)
+        self.sdf_l1 = nn.Linear(cfg.hidden, 1 + cfg.feature_dim)
+        self._geometric_init(in_dim)
+        self.color_net = nn.Sequential(
+            nn.Linear(cfg.feature_dim + 3 + 9, cfg.color_hidden),
+            nn.ReLU(inplace=True),
+            nn.Linear(cfg.color_hidden, cfg.color_hidden),
+            nn.ReLU(inplace=True),
+            nn.Linear(cfg.color_hidden, 3),
+        )
+        self.background = nn.Sequential(nn.Linear(9, 32), nn.ReLU(inplace=True), nn.Linear(32, 3))
+        self.variance = nn.Parameter(torch.tensor(cfg.init_variance))
+
+    def _geometric_init(self, in_dim: int) -> None:
+        """SAL-style initialisation: the SDF starts as a sphere, so early rays meet a surface."""
+        h = self.cfg.hidden
+        nn.init.normal_(self.sdf_l0.weight[:, :3], 0.0, math.sqrt(2) / math.sqrt(h))
+        nn.init.zeros_(self.sdf_l0.weight[:, 3:])
+        nn.init.zeros_(self.sdf_l0.bias)
+        nn.init.normal_(self.sdf_l1.weight, mean=math.sqrt(math.pi) / math.sqrt(h), std=1e-4)
+        nn.init.constant_(self.sdf_l1.bias, -self.cfg.init_radius)
+        with torch.no_grad():
+            self.sdf_l1.weight[1:].normal_(0.0, 1.0 / math.sqrt(h))
+            self.sdf_l1.bias[1:].zero_()
+
+    @property
+    def inv_s(self) -> torch.Tensor:
+        return torch.exp(self.variance * 10.0).clamp(1.0, 1e5)
+
+    def get_sdf(self, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """(N,3) -> sdf (N,) and geometry feature (N, feature_dim)."""
+        h = torch.cat([x, self.encoding(x)], dim=-1)
+        h = F.softplus(self.sdf_l0(h), beta=100)
+        out = self.sdf_l1(h)
+        return out[:, 0], out[:, 1:]
+
+    def sdf_and_gradient(
+        self, x: torch.Tensor, create_graph: bool
+    ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """sdf, feature and d sdf / dx (exact, by autograd; ``create_graph`` for the eikonal loss)."""
+        with torch.enable_grad():
+            x = x.detach().requires_grad_(True)
+            sdf, feature = self.get_sdf(x)
+            (grad,) = torch.autograd.grad(sdf.sum(), x, create_graph=create_graph)
+        return sdf, feature, grad
+
+    def get_color(self, feature: torch.Tensor, normal: torch.Tensor, dirs: torch.Tensor) -> torch.Tensor:
+        """View-dependent colour: the wound is wet and shiny, so colour sees direction and normal."""
+        return torch.sigmoid(self.color_net(torch.cat([feature, normal, _sh_deg2(dirs)], dim=-1)))
+
+    def get_background(self, dirs: torch.Tensor) -> torch.Tensor:
+        """Colour of what lies beyond the region of interest, by direction only."""
+        return torch.sigmoid(self.background(_sh_deg2(dirs)))
+
+    @torch.no_grad()
+    def sdf_batched(self, x: torch.Tensor, chunk: int = 65536) -> torch.Tensor:
+        return torch.cat([self.get_sdf(x[i : i + chunk])[0] for i in range(0, len(x), chunk)])

@@ -1,0 +1,395 @@
+"""The two training stages of the paper: geometry from RGB, then semantics with geometry frozen."""
+
+from __future__ import annotations
+
+import math
+import time
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+import torch
+from torch.nn import functional as F
+
+from ..cameras import Camera
+from ..classes import IGNORE_ID, ClassMap
+from ..progress import make_progress
+from .config import GeometryConfig, SemanticConfig
+from .encoding import HashGridEncoding
+from .rendering import (
+    OccupancyGrid,
+    accumulate,
+    accumulate_scalar,
+    composite_weights,
+    march,
+    neus_alpha,
+)
+from .sdf import SDFField
+from .semantic import SemanticHead, class_weights
+
+# Logit vector given to the part of a ray that leaves the region of interest unabsorbed:
+# whatever lies beyond the surface band is background.
+BACKGROUND_LOGIT = 10.0
+
+
+def pick_device(name: str = "auto") -> torch.device:
+    """The one place a device is chosen: auto = CUDA when available, else CPU."""
+    if name == "auto":
+        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
+    if name == "cuda" and not torch.cuda.is_available():
+        from ..errors import LabelsynthError
+
+        raise LabelsynthError("--device cuda was asked for but torch sees no CUDA device")
+    if name not in {"cpu", "cuda"}:
+        from ..errors import LabelsynthError
+
+        raise LabelsynthError(f"unknown device '{name}' (use auto, cpu or cuda)")
+    return torch.device(name)
+
+
+def _resize(img: np.ndarray, camera: Camera, interpolation: int) -> np.ndarray:
+    if img.shape[1] == camera.width and img.shape[0] == camera.height:
+        return img
+    return cv2.resize(img, (camera.width, camera.height), interpolation=interpolation)
+
+
+def _camera_rays(camera: Camera, pixels: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+    o, d = camera.rays(pixels)
+    return o.astype(np.float32), d.astype(np.float32)
+
+
+class RayBank:
+    """Every pixel of every frame at the training scale, as rays and target colours."""
+
+    def __init__(self, cameras: Sequence[Camera], images: Sequence[np.ndarray], device: torch.device) -> None:
+        origins, dirs, rgbs = [], [], []
+        for cam, img in zip(cameras, images):
+            img = _resize(img, cam, cv2.INTER_AREA)
+            o, d = _camera_rays(cam)
+            origins.append(o)
+            dirs.append(d)
+            rgbs.append(img.reshape(-1, 3).astype(np.float32) / 255.0)
+        self.origins = torch.from_numpy(np.concatenate(origins)).to(device)
+        self.dirs = torch.from_numpy(np.concatenate(dirs)).to(device)
+        self.rgb = torch.from_numpy(np.concatenate(rgbs)).to(device)
+        self.device = device
+
+    def __len__(self) -> int:
+        return self.origins.shape[0]
+
+    def sample(self, n: int, generator: torch.Generator | None = None):
+        idx = torch.randint(0, len(self), (n,), device=self.device, generator=generator)
+        return self.origins[idx], self.dirs[idx], self.rgb[idx]
+
+
+@dataclass
+class GeometryStats:
+    iterations: int
+    seconds: float
+    final_psnr: float
+    mean_samples_per_ray: float
+    inv_s: float
+    occupancy: float
+
+
+def render_rays_rgb(
+    field: SDFField,
+    grid: OccupancyGrid,
+    origins: torch.Tensor,
+    dirs: torch.Tensor,
+    cos_anneal_ratio: float,
+    steps: int,
+    train: bool,
+):
+    """NeuS colour rendering of a batch of rays; returns rgb, opacity, samples, gradients."""
+    samples = march(origins, dirs, grid, steps=steps, perturb=train)
+    n = origins.shape[0]
+    bg = field.get_background(dirs)
+    if samples.positions.shape[0] == 0:
+        return bg, torch.zeros(n, device=origins.device), samples, None
+    sdf, feature, grad = field.sdf_and_gradient(samples.positions, create_graph=train)
+    normal = F.normalize(grad, dim=-1)
+    alpha = neus_alpha(sdf, grad, samples.dirs, samples.deltas, field.inv_s, cos_anneal_ratio)
+    weights = composite_weights(alpha, samples.ray_index, n)
+    color = field.get_color(feature, normal, samples.dirs)
+    rgb = accumulate(color, weights, samples.ray_index, n)
+    opacity = accumulate_scalar(weights, samples.ray_index, n)
+    rgb = rgb + (1.0 - opacity)[:, None] * bg
+    return rgb, opacity, samples, grad
+
+
+def _band(cfg: GeometryConfig, field: SDFField) -> float:
+    """Half-width of the sampled band around the surface: a few widths of NeuS's logistic density."""
+    return min(cfg.occupancy_band / float(field.inv_s.detach()), cfg.occupancy_max_band)
+
+
+def train_geometry(
+    field: SDFField,
+    bank: RayBank,
+    cfg: GeometryConfig,
+    *,
+    seed: int = 0,
+    progress: bool = True,
+) -> tuple[OccupancyGrid, GeometryStats]:
+    """Stage 1: fit SDF + colour to the images (L1 photometric + eikonal)."""
+    device = bank.device
+    torch.manual_seed(seed)
+    gen = torch.Generator(device=device).manual_seed(seed)
+    field.train()
+    params = [
+        {"params": [field.encoding.table], "lr": cfg.lr},
+        {"params": [p for n, p in field.named_parameters() if n != "encoding.table" and n != "variance"], "lr": cfg.lr},
+        {"params": [field.variance], "lr": cfg.lr},
+    ]
+    opt = torch.optim.Adam(params, betas=(0.9, 0.99), eps=1e-15)
+    gamma = cfg.lr_final_factor ** (1.0 / max(cfg.iterations, 1))
+    sched = torch.optim.lr_scheduler.LambdaLR(
+        opt, lambda it: min(1.0, (it + 1) / 50) * gamma**it  # short warm-up, then exponential decay
+    )
+    grid = OccupancyGrid(cfg.occupancy_resolution, device)
+    n_rays = min(1024, cfg.max_rays)
+    psnr_ema, spr_ema, occ = 0.0, 0.0, 1.0
+    t0 = time.time()
+    with make_progress(progress) as bar:
+        task = bar.add_task("geometry", total=cfg.iterations, status="")
+        for it in range(cfg.iterations):
+            field.encoding.set_active_levels(cfg.levels_start + it // max(cfg.levels_every, 1))
+            if it % cfg.occupancy_every == 0:
+                occ = grid.update(field.sdf_batched, _band(cfg, field))
+            origins, dirs, target = bank.sample(n_rays, gen)
+            cos_ratio = min(1.0, it / max(cfg.cos_anneal_iters, 1))
+            rgb, opacity, samples, grad = render_rays_rgb(
+                field, grid, origins, dirs, cos_ratio, cfg.march_steps, train=True
+            )
+            loss = F.l1_loss(rgb, target)
+            if grad is not None:
+                # Eikonal on the ray samples plus random points, so the whole cube stays an SDF.
+                rand_pts = torch.rand(max(256, n_rays // 4), 3, device=device, generator=gen) * 2 - 1
+                _, _, rand_grad = field.sdf_and_gradient(rand_pts, create_graph=True)
+                all_grad = torch.cat([grad, rand_grad])
+                loss = loss + cfg.eikonal_weight * ((all_grad.norm(dim=-1) - 1.0) ** 2).mean()
+            opt.zero_grad(set_to_none=True)
+            loss.backward()
+            opt.step()
+            sched.step()
+            n_samples = samples.positions.shape[0]
+            spr = n_samples / max(n_rays, 1)
+            # Sample-count-driven batch: as the band tightens, more rays fit the same budget.
+            if n_samples > 0:
+                n_rays = int(min(cfg.max_rays, max(256, n_rays * 0.8 + 0.2 * n_rays * cfg.target_samples / n_samples)))
+            with torch.no_grad():
+                mse = F.mse_loss(rgb, target).item()
+            psnr = -10 * math.log10(max(mse, 1e-10))
+            psnr_ema = psnr if it == 0 else 0.95 * psnr_ema + 0.05 * psnr
+            spr_ema = spr if it == 0 else 0.95 * spr_ema + 0.05 * spr
+            bar.update(task, advance=1, status=f"psnr {psnr_ema:5.2f} rays {n_rays} spr {spr_ema:4.1f} s {float(field.inv_s):6.0f}")
+    grid.update(field.sdf_batched, _band(cfg, field), jitter=False)
+    field.eval()
+    stats = GeometryStats(cfg.iterations, time.time() - t0, psnr_ema, spr_ema, float(field.inv_s), occ)
+    return grid, stats
+
+
+# --------------------------------------------------------------------------------------
+# Semantic stage
+# --------------------------------------------------------------------------------------
+
+
+@dataclass
+class LabelledFrame:
+    """One frame's labels for the semantic stage; ``weight`` scales its rays' loss."""
+
+    camera: Camera  # unit-cube coordinates, full resolution
+    mask: np.ndarray  # (H, W) uint8 class ids, 255 ignore
+    weight: float = 1.0
+
+
+@dataclass
+class BakedRays:
+    """Training rays of the semantic stage with their frozen-geometry samples (top-K by weight)."""
+
+    positions: torch.Tensor  # (R, K, 3)
+    features: torch.Tensor  # (R, K, F)
+    weights: torch.Tensor  # (R, K)
+    labels: torch.Tensor  # (R,) class index (not id)
+    ray_weight: torch.Tensor  # (R,)
+    class_counts: np.ndarray  # (C,) label pixels per class index over the used masks
+
+    def __len__(self) -> int:
+        return self.labels.shape[0]
+
+
+@torch.no_grad()
+def sample_frozen(
+    field: SDFField,
+    grid: OccupancyGrid,
+    origins: torch.Tensor,
+    dirs: torch.Tensor,
+    steps: int,
+    k: int,
+    chunk: int = 8192,
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """For each ray: its K highest-weight samples (positions, geometry features, weights).
+
+    With geometry frozen, the rendering weights of a ray never change, so they are computed
+    once; the semantic stage then only evaluates the head (the paper's Eq. 3, cached).
+    """
+    device = origins.device
+    out_pos, out_feat, out_w = [], [], []
+    fdim = field.cfg.feature_dim
+    for s in range(0, origins.shape[0], chunk):
+        o, d = origins[s : s + chunk], dirs[s : s + chunk]
+        n = o.shape[0]
+        samples = march(o, d, grid, steps=steps, perturb=False)
+        pos = torch.zeros(n, k, 3, device=device)
+        feat = torch.zeros(n, k, fdim, device=device)
+        wk = torch.zeros(n, k, device=device)
+        if samples.positions.shape[0] > 0:
+            sdf, feature, grad = field.sdf_and_gradient(samples.positions, create_graph=False)
+            alpha = neus_alpha(sdf, grad, samples.dirs, samples.deltas, field.inv_s, 1.0)
+            w = composite_weights(alpha, samples.ray_index, n)
+            # Rank samples within each ray by weight: sort by (ray, -w) and take the first k.
+            order = torch.argsort(samples.ray_index.double() * 4.0 - w.double().clamp(0, 1))
+            ray_sorted = samples.ray_index[order]
+            first = torch.ones_like(ray_sorted, dtype=torch.bool)
+            first[1:] = ray_sorted[1:] != ray_sorted[:-1]
+            start = torch.zeros(n, dtype=torch.long, device=device)
+            start[ray_sorted[first]] = torch.nonzero(first).squeeze(-1)
+            rank = torch.arange(len(order), device=device) - start[ray_sorted]
+            keep = rank < k
+            sel = order[keep]
+            r, c = ray_sorted[keep], rank[keep]
+            pos[r, c] = samples.positions[sel]
+            feat[r, c] = feature[sel]
+            wk[r, c] = w[sel]
+        out_pos.append(pos)
+        out_feat.append(feat)
+        out_w.append(wk)
+    return torch.cat(out_pos), torch.cat(out_feat), torch.cat(out_w)
+
+
+def bake_semantic_rays(
+    field: SDFField,
+    grid: OccupancyGrid,
+    frames: Sequence[LabelledFrame],
+    classes: ClassMap,
+    cfg: SemanticConfig,
+    steps: int,
+    *,
+    seed: int = 0,
+    progress: bool = True,
+) -> BakedRays:
+    """Rays of labelled pixels only: frames without labels contribute nothing (loss gating)."""
+    rng = np.random.default_rng(seed)
+    lut = classes.id_to_index_lut()
+    device = field.encoding.table.device
+    counts = np.zeros(classes.num_classes, dtype=np.int64)
+    parts: list[tuple] = []
+    with make_progress(progress) as bar:
+        task = bar.add_task("baking rays", total=len(frames), status="")
+        for frame in frames:
+            cam = frame.camera.scaled(cfg.train_scale)
+            mask = _resize(frame.mask, cam, cv2.INTER_NEAREST)
+            idx = lut[mask.reshape(-1)]
+            valid = np.nonzero(idx >= 0)[0]
+            bar.advance(task)
+            if valid.size == 0:
+                continue
+            counts += np.bincount(idx[valid], minlength=classes.num_classes)
+            if valid.size > cfg.max_rays_per_frame:
+                valid = rng.choice(valid, cfg.max_rays_per_frame, replace=False)
+            pixels = np.stack([valid % cam.width + 0.5, valid // cam.width + 0.5], -1)
+            o, d = _camera_rays(cam, pixels)
+            pos, feat, w = sample_frozen(
+                field, grid, torch.from_numpy(o).to(device), torch.from_numpy(d).to(device), steps, cfg.max_samples_per_ray
+            )
+            labels = torch.from_numpy(idx[valid]).to(device)
+            parts.append((pos, feat, w, labels, torch.full((len(valid),), float(frame.weight), device=device)))
+    if not parts:
+        from ..errors import LabelsynthError
+
+        raise LabelsynthError("no labelled pixels: every annotation/prediction mask is empty or ignore")
+    cat = [torch.cat([p[i] for p in parts]) for i in range(5)]
+    return BakedRays(*cat, class_counts=counts)
+
+
+def weighted_cross_entropy(
+    logits: torch.Tensor, labels: torch.Tensor, class_w: torch.Tensor, ray_w: torch.Tensor
+) -> torch.Tensor:
+    """Paper Eq. 4: -w_y log p_y, normalised by the total weight (rays of weight 0 teach nothing)."""
+    ce = F.cross_entropy(logits, labels, reduction="none")
+    w = class_w[labels] * ray_w
+    return (w * ce).sum() / w.sum().clamp_min(1e-8)
+
+
+def make_semantic_head(field: SDFField, classes: ClassMap, cfg: SemanticConfig) -> SemanticHead:
+    pos_enc = None
+    if cfg.use_position:
+        pos_enc = HashGridEncoding(
+            levels=cfg.position_levels,
+            features_per_level=2,
+            log2_table=cfg.position_log2_table,
+            base_resolution=16,
+            max_resolution=cfg.position_max_resolution,
+        )
+    device = field.encoding.table.device
+    return SemanticHead(field.cfg.feature_dim, classes.num_classes, cfg.hidden, cfg.dropout, pos_enc).to(device)
+
+
+@dataclass
+class SemanticStats:
+    iterations: int
+    seconds: float
+    final_loss: float
+    rays: int
+    class_weights: list[float]
+
+
+def train_semantic(
+    head: SemanticHead,
+    baked: BakedRays,
+    classes: ClassMap,
+    cfg: SemanticConfig,
+    *,
+    seed: int = 0,
+    progress: bool = True,
+) -> SemanticStats:
+    """Stage 2: weighted cross-entropy on volume-rendered logits, geometry frozen (cached)."""
+    device = baked.positions.device
+    torch.manual_seed(seed)
+    gen = torch.Generator(device=device).manual_seed(seed + 1)
+    cw = class_weights(baked.class_counts, classes, cfg.background_weight, cfg.tissue_weight_floor)
+    class_w = torch.from_numpy(cw).to(device)
+    opt = torch.optim.Adam(head.parameters(), lr=cfg.lr, betas=(0.9, 0.99), eps=1e-15)
+    sched = torch.optim.lr_scheduler.CosineAnnealingLR(opt, T_max=max(cfg.iterations, 1), eta_min=cfg.lr * 0.05)
+    bg_idx = classes.background_index
+    head.train()
+    loss_ema = 0.0
+    t0 = time.time()
+    with make_progress(progress) as bar:
+        task = bar.add_task("semantics", total=cfg.iterations, status="")
+        for it in range(cfg.iterations):
+            idx = torch.randint(0, len(baked), (min(cfg.rays_per_batch, len(baked)),), device=device, generator=gen)
+            logits = rendered_logits(head, baked.positions[idx], baked.features[idx], baked.weights[idx], bg_idx)
+            loss = weighted_cross_entropy(logits, baked.labels[idx], class_w, baked.ray_weight[idx])
+            opt.zero_grad(set_to_none=True)
+            loss.backward()
+            opt.step()
+            sched.step()
+            loss_ema = loss.item() if it == 0 else 0.95 * loss_ema + 0.05 * loss.item()
+            bar.update(task, advance=1, status=f"loss {loss_ema:.4f}")
+    head.eval()
+    return SemanticStats(cfg.iterations, time.time() - t0, loss_ema, len(baked), cw.tolist())
+
+
+def rendered_logits(
+    head: SemanticHead, positions: torch.Tensor, features: torch.Tensor, weights: torch.Tensor, background_index: int
+) -> torch.Tensor:
+    """Volume-rendered logits of K cached samples per ray; the unabsorbed rest is background."""
+    r, k, _ = positions.shape
+    per_sample = head(features.reshape(r * k, -1), positions.reshape(r * k, 3)).reshape(r, k, -1)
+    logits = (weights[..., None] * per_sample).sum(1)
+    rest = (1.0 - weights.sum(1)).clamp(0.0, 1.0)
+    bg = torch.zeros(per_sample.shape[-1], device=positions.device)
+    bg[background_index] = BACKGROUND_LOGIT
+    return logits + rest[:, None] * bg[None, :]

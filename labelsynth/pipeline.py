@@ -1,0 +1,268 @@
+"""`labelsynth expand` as a library call: capture in, consistent masks and a dataset out.
+
+The output folder is built under ``OUT.partial`` and renamed to OUT only when everything is
+written, so an interrupted run never leaves an OUT that looks complete.
+"""
+
+from __future__ import annotations
+
+import json
+import shutil
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+import torch
+import yaml
+
+from . import __version__
+from .capture import load_capture
+from .capture.load import validate_capture
+from .capture.model import Capture
+from .errors import LabelsynthError
+from .export import LabelsWriter, write_masks_png
+from .field.config import Recipe, load_recipe
+from .field.model import SemanticField
+from .field.sdf import SDFField
+from .field.training import (
+    LabelledFrame,
+    RayBank,
+    bake_semantic_rays,
+    make_semantic_head,
+    pick_device,
+    train_geometry,
+    train_semantic,
+)
+from .progress import console, track
+
+LABEL_MODES = ("annotations", "predictions", "both")
+FIELD_FILE = "field.pt"
+
+
+@dataclass
+class ExpandResult:
+    out: Path
+    frames: list[str]
+    annotated: list[str]
+    labels: str
+    seconds: dict[str, float] = field(default_factory=dict)
+    geometry: dict = field(default_factory=dict)
+    semantic: dict = field(default_factory=dict)
+
+    def summary(self) -> str:
+        total = sum(self.seconds.values())
+        return (
+            f"{len(self.frames)} masks in {self.out / 'masks'}; dataset {self.out / 'labels.h5'}; "
+            f"labels={self.labels}; {total:.0f} s "
+            f"(geometry {self.seconds.get('geometry', 0):.0f} s, semantics {self.seconds.get('semantics', 0):.0f} s, "
+            f"render {self.seconds.get('render', 0):.0f} s)"
+        )
+
+
+def resolve_label_mode(capture: Capture, labels: str | None) -> str:
+    """DESIGN: default ``both`` when both folders exist, else whichever exists."""
+    if labels is not None and labels not in LABEL_MODES:
+        raise LabelsynthError(f"--labels must be one of {', '.join(LABEL_MODES)}, not '{labels}'")
+    has_a, has_p = capture.has_annotations, capture.has_predictions
+    if labels is None:
+        if has_a and has_p:
+            return "both"
+        if has_a:
+            return "annotations"
+        if has_p:
+            return "predictions"
+        raise LabelsynthError(f"{capture.root}: no annotations/ or predictions/ masks to learn from")
+    if labels in ("annotations", "both") and not has_a:
+        raise LabelsynthError(f"{capture.root / 'annotations'}: --labels {labels} needs expert masks, none found")
+    if labels in ("predictions", "both") and not has_p:
+        raise LabelsynthError(f"{capture.root / 'predictions'}: --labels {labels} needs automatic masks, none found")
+    return labels
+
+
+def labelled_frames(capture: Capture, mode: str, recipe: Recipe, exclude: set[str] = frozenset()) -> list[LabelledFrame]:
+    """The masks that teach the semantic stage. An expert mask replaces a prediction of the same frame."""
+    cams = capture.unit_cameras()
+    out = []
+    for i, frame in enumerate(capture.frames):
+        if frame.name in exclude:
+            continue
+        mask, weight = None, 1.0
+        if mode in ("annotations", "both") and frame.annotation_path is not None:
+            mask = capture.load_annotation(i)
+            weight = recipe.semantic.expert_weight if mode == "both" else 1.0
+        elif mode in ("predictions", "both") and frame.prediction_path is not None:
+            mask = capture.load_prediction(i)
+        if mask is not None:
+            out.append(LabelledFrame(cams[i], mask, weight))
+    return out
+
+
+def fit_field(
+    capture: Capture,
+    recipe: Recipe,
+    labels: str,
+    device: torch.device,
+    *,
+    seed: int = 0,
+    progress: bool = True,
+) -> tuple[SemanticField, dict]:
+    """Both stages of the paper on one capture; returns the field and timing/quality stats."""
+    torch.manual_seed(seed)
+    np.random.seed(seed)
+    geo = recipe.geometry
+    cams = [c.scaled(geo.train_scale) for c in capture.unit_cameras()]
+    t0 = time.time()
+    images = [capture.load_image(i) for i in track(range(len(capture)), "loading images", enabled=progress)]
+    bank = RayBank(cams, images, device)
+    del images
+    sdf = SDFField(geo.sdf).to(device)
+    grid, gstats = train_geometry(sdf, bank, geo, seed=seed, progress=progress)
+    del bank
+    for p in sdf.parameters():
+        p.requires_grad_(False)  # the paper's stage 2: geometry frozen
+    t1 = time.time()
+    sem = SemanticField(sdf, None, grid, capture.classes, capture.normalization, recipe, device)
+    sstats = fit_semantics(sem, capture, labels, seed=seed, progress=progress)
+    t2 = time.time()
+    stats = {
+        "seconds": {"geometry": t1 - t0, "semantics": t2 - t1},
+        "geometry": vars(gstats),
+        "semantic": sstats,
+    }
+    return sem, stats
+
+
+def fit_semantics(
+    sem: SemanticField,
+    capture: Capture,
+    labels: str,
+    *,
+    exclude: set[str] = frozenset(),
+    seed: int = 0,
+    progress: bool = True,
+) -> dict:
+    """(Re)train the semantic head on frozen geometry, optionally leaving frames out."""
+    recipe = sem.recipe
+    frames = labelled_frames(capture, labels, recipe, exclude)
+    baked = bake_semantic_rays(
+        sem.sdf, sem.grid, frames, capture.classes, recipe.semantic, recipe.geometry.march_steps, seed=seed, progress=progress
+    )
+    head = make_semantic_head(sem.sdf, capture.classes, recipe.semantic)
+    stats = train_semantic(head, baked, capture.classes, recipe.semantic, seed=seed, progress=progress)
+    sem.head = head
+    return vars(stats)
+
+
+def _prepare_out(out: Path, force: bool) -> Path:
+    out = Path(out)
+    if out.exists() and any(out.iterdir()):
+        if not force:
+            raise LabelsynthError(f"{out}: output folder exists and is not empty (use --force to replace it)")
+    partial = out.with_name(out.name + ".partial")
+    if partial.exists():
+        shutil.rmtree(partial)
+    partial.mkdir(parents=True)
+    return partial
+
+
+def _finish_out(partial: Path, out: Path) -> None:
+    if out.exists():
+        shutil.rmtree(out)
+    partial.rename(out)
+
+
+def render_outputs(
+    sem: SemanticField,
+    capture: Capture,
+    out: Path,
+    *,
+    labels: str,
+    recipe_name: str,
+    progress: bool = True,
+) -> dict[str, np.ndarray]:
+    """masks/*.png and labels.h5 for every frame at its input resolution; returns the masks."""
+    cams = capture.unit_cameras()
+    annotated = [f.annotation_path is not None for f in capture.frames]
+    masks: dict[str, np.ndarray] = {}
+    recipe_text = yaml.safe_dump(sem.recipe.to_dict(), sort_keys=False)
+    with LabelsWriter(
+        out / "labels.h5",
+        n_frames=len(capture),
+        classes=capture.classes,
+        source=str(capture.root),
+        recipe=recipe_text,
+        attrs={"labels": labels, "recipe_name": recipe_name},
+    ) as writer:
+        for i in track(range(len(capture)), "rendering masks", enabled=progress):
+            frame = capture.frames[i]
+            r = sem.render(cams[i])
+            write_masks_png(out / "masks", frame.name, r.mask, capture.classes)
+            writer.add(frame.name, capture.load_image(i), r.mask, r.confidence.astype(np.float16), annotated[i])
+            masks[frame.name] = r.mask
+    return masks
+
+
+def expand(
+    capture_dir: str | Path,
+    out: str | Path,
+    *,
+    labels: str | None = None,
+    recipe: str | Path = "default",
+    device: str = "auto",
+    seed: int = 0,
+    overrides: list[str] | None = None,
+    force: bool = False,
+    progress: bool = True,
+    report: bool = True,
+) -> ExpandResult:
+    """Fit the semantic field to a capture and write OUT per DESIGN.md."""
+    capture = load_capture(capture_dir)
+    validate_capture(capture)
+    mode = resolve_label_mode(capture, labels)
+    rec = load_recipe(recipe, overrides)
+    dev = pick_device(device)
+    out = Path(out)
+    partial = _prepare_out(out, force)
+    try:
+        if progress:
+            console.print(f"[bold]labelsynth[/] {len(capture)} frames, labels={mode}, recipe={rec.name}, device={dev}")
+        sem, stats = fit_field(capture, rec, mode, dev, seed=seed, progress=progress)
+        sem.save(partial / FIELD_FILE)
+        t0 = time.time()
+        masks = render_outputs(sem, capture, partial, labels=mode, recipe_name=rec.name, progress=progress)
+        stats["seconds"]["render"] = time.time() - t0
+        if report:
+            from .report import build_report
+
+            t0 = time.time()
+            build_report(partial, capture, sem, masks, mode, progress=progress)
+            stats["seconds"]["report"] = time.time() - t0
+        (partial / "run.json").write_text(
+            json.dumps(
+                {
+                    "version": __version__,
+                    "capture": str(Path(capture_dir).resolve()),
+                    "labels": mode,
+                    "recipe": rec.to_dict(),
+                    "device": str(dev),
+                    "seed": seed,
+                    **stats,
+                },
+                indent=2,
+                default=float,
+            )
+        )
+        _finish_out(partial, out)
+    except BaseException:
+        shutil.rmtree(partial, ignore_errors=True)
+        raise
+    return ExpandResult(
+        out=out,
+        frames=capture.names,
+        annotated=[f.name for f in capture.frames if f.annotation_path is not None],
+        labels=mode,
+        seconds=stats["seconds"],
+        geometry=stats["geometry"],
+        semantic=stats["semantic"],
+    )
