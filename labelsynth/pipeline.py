@@ -80,22 +80,62 @@ def resolve_label_mode(capture: Capture, labels: str | None) -> str:
     return labels
 
 
-def labelled_frames(capture: Capture, mode: str, recipe: Recipe, exclude: set[str] = frozenset()) -> list[LabelledFrame]:
-    """The masks that teach the semantic stage. An expert mask replaces a prediction of the same frame."""
+def labelled_frames(
+    capture: Capture,
+    mode: str,
+    recipe: Recipe,
+    *,
+    exclude: set[str] = frozenset(),
+    predictions: dict[str, np.ndarray] | None = None,
+    annotations: dict[str, np.ndarray] | None = None,
+) -> list[LabelledFrame]:
+    """The masks that teach the semantic stage. An expert mask replaces a prediction of the same frame.
+
+    ``predictions`` / ``annotations`` replace the capture's own masks (e.g. perturbed ones in
+    the benchmark); a frame missing from a given dict has no mask of that kind.
+    """
     cams = capture.unit_cameras()
     out = []
     for i, frame in enumerate(capture.frames):
         if frame.name in exclude:
             continue
         mask, weight = None, 1.0
-        if mode in ("annotations", "both") and frame.annotation_path is not None:
-            mask = capture.load_annotation(i)
+        if mode in ("annotations", "both"):
+            mask = annotations.get(frame.name) if annotations is not None else capture.load_annotation(i)
             weight = recipe.semantic.expert_weight if mode == "both" else 1.0
-        elif mode in ("predictions", "both") and frame.prediction_path is not None:
-            mask = capture.load_prediction(i)
+        if mask is None and mode in ("predictions", "both"):
+            mask = predictions.get(frame.name) if predictions is not None else capture.load_prediction(i)
+            weight = 1.0
         if mask is not None:
             out.append(LabelledFrame(cams[i], mask, weight))
     return out
+
+
+def fit_geometry(
+    capture: Capture,
+    recipe: Recipe,
+    device: torch.device,
+    *,
+    frames: list[int] | None = None,
+    seed: int = 0,
+    progress: bool = True,
+) -> tuple[SemanticField, dict]:
+    """Stage 1 on the capture's images (all frames, or the given indices); no semantics yet."""
+    torch.manual_seed(seed)
+    np.random.seed(seed)
+    geo = recipe.geometry
+    indices = list(range(len(capture))) if frames is None else list(frames)
+    unit = capture.unit_cameras()
+    cams = [unit[i].scaled(geo.train_scale) for i in indices]
+    images = [capture.load_image(i) for i in track(indices, "loading images", enabled=progress)]
+    bank = RayBank(cams, images, device)
+    del images
+    sdf = SDFField(geo.sdf).to(device)
+    grid, gstats = train_geometry(sdf, bank, geo, seed=seed, progress=progress)
+    for p in sdf.parameters():
+        p.requires_grad_(False)  # the paper's stage 2: geometry frozen
+    sem = SemanticField(sdf, None, grid, capture.classes, capture.normalization, recipe, device)
+    return sem, vars(gstats)
 
 
 def fit_field(
@@ -108,48 +148,31 @@ def fit_field(
     progress: bool = True,
 ) -> tuple[SemanticField, dict]:
     """Both stages of the paper on one capture; returns the field and timing/quality stats."""
-    torch.manual_seed(seed)
-    np.random.seed(seed)
-    geo = recipe.geometry
-    cams = [c.scaled(geo.train_scale) for c in capture.unit_cameras()]
     t0 = time.time()
-    images = [capture.load_image(i) for i in track(range(len(capture)), "loading images", enabled=progress)]
-    bank = RayBank(cams, images, device)
-    del images
-    sdf = SDFField(geo.sdf).to(device)
-    grid, gstats = train_geometry(sdf, bank, geo, seed=seed, progress=progress)
-    del bank
-    for p in sdf.parameters():
-        p.requires_grad_(False)  # the paper's stage 2: geometry frozen
+    sem, gstats = fit_geometry(capture, recipe, device, seed=seed, progress=progress)
     t1 = time.time()
-    sem = SemanticField(sdf, None, grid, capture.classes, capture.normalization, recipe, device)
-    sstats = fit_semantics(sem, capture, labels, seed=seed, progress=progress)
+    sstats = fit_semantics(sem, labelled_frames(capture, labels, recipe), seed=seed, progress=progress)
     t2 = time.time()
-    stats = {
-        "seconds": {"geometry": t1 - t0, "semantics": t2 - t1},
-        "geometry": vars(gstats),
-        "semantic": sstats,
-    }
-    return sem, stats
+    return sem, {"seconds": {"geometry": t1 - t0, "semantics": t2 - t1}, "geometry": gstats, "semantic": sstats}
 
 
 def fit_semantics(
     sem: SemanticField,
-    capture: Capture,
-    labels: str,
+    frames: list[LabelledFrame],
     *,
-    exclude: set[str] = frozenset(),
     seed: int = 0,
     progress: bool = True,
 ) -> dict:
-    """(Re)train the semantic head on frozen geometry, optionally leaving frames out."""
+    """(Re)train the semantic head on frozen geometry from the given labelled frames.
+
+    Cheap compared with geometry, so leave-one-out and benchmarks call it repeatedly.
+    """
     recipe = sem.recipe
-    frames = labelled_frames(capture, labels, recipe, exclude)
     baked = bake_semantic_rays(
-        sem.sdf, sem.grid, frames, capture.classes, recipe.semantic, recipe.geometry.march_steps, seed=seed, progress=progress
+        sem.sdf, sem.grid, frames, sem.classes, recipe.semantic, recipe.geometry.march_steps, seed=seed, progress=progress
     )
-    head = make_semantic_head(sem.sdf, capture.classes, recipe.semantic)
-    stats = train_semantic(head, baked, capture.classes, recipe.semantic, seed=seed, progress=progress)
+    head = make_semantic_head(sem.sdf, sem.classes, recipe.semantic)
+    stats = train_semantic(head, baked, sem.classes, recipe.semantic, seed=seed, progress=progress)
     sem.head = head
     return vars(stats)
 
