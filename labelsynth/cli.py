@@ -137,6 +137,33 @@ def segment(
     typer.echo(report.summary())
 
 
+@app.command()
+@friendly_errors
+def bench(
+    capture: Path = typer.Argument(..., help="Capture folder with predictions/ (and annotations/)."),
+    truth: Path = typer.Option(..., "--truth", help="Folder of truth masks <image stem>.png for the frames to score."),
+    out: Path = typer.Option(..., "--out", help="Folder for bench.json, bench.md, bench.png."),
+    perturb: Optional[str] = typer.Option(None, "--perturb", help="Comma list of none,erosion-dilation,jitter,half-frames (default: all)."),
+    methods: Optional[str] = typer.Option(None, "--methods", help="Comma list of 2d,3d2d,field (default: all)."),
+    recipe: str = typer.Option("default", help="Recipe name (default, fast, quality, paper) or a YAML path."),
+    device: str = typer.Option("auto", help="auto | cpu | cuda"),
+    seed: int = typer.Option(0, help="Random seed (training and perturbations)."),
+    set_: list[str] = typer.Option([], "--set", help="Override a recipe value, e.g. --set geometry.iterations=500"),
+    mesh: Optional[Path] = typer.Option(None, "--mesh", help="World-coordinate mesh for 3D/2D instead of the fitted surface."),
+    half_geometry: bool = typer.Option(True, "--half-geometry/--shared-geometry", help="Half-frames: refit geometry on the kept frames, or reuse the all-frames geometry."),
+    cutoff: float = typer.Option(75.0, "--cutoff", help="3D/2D: views more grazing than this angle (degrees) do not vote."),
+) -> None:
+    """Paper Tables 1 and 2: 2D, 3D/2D and the field under each perturbation, scored against --truth."""
+    from .bench import bench_markdown, run_bench
+
+    result = run_bench(
+        capture, truth, out, perturbations=perturb, methods=methods, recipe=recipe, device=device,
+        overrides=set_, seed=seed, mesh=mesh, half_geometry=half_geometry, cutoff_deg=cutoff,
+    )
+    typer.echo(bench_markdown(result))
+    typer.echo(f"wrote {out / 'bench.json'}, {out / 'bench.md'}, {out / 'bench.png'}")
+
+
 def main() -> None:  # pragma: no cover - console entry point alias
     app(prog_name="labelsynth")
 
