@@ -250,8 +250,7 @@ def run_bench(
         "annotated_frames": annotated,
         "scored_frames": len(scored),
         "half_frames_kept": len(kept),
-        "half_frames_geometry": ("user mesh" if user_mesh is not None and not needs_field else
-                                 "refit on kept frames" if half_geometry else "shared (all frames)"),
+        "half_frames_geometry": _half_geometry_note(user_mesh is not None, needs_field, half_geometry),
         "fusion": {"cutoff_deg": cutoff_deg, "stride": stride, "mesh": str(mesh) if mesh else "fitted field"},
         "notes": [annotations_note] if annotations_note else [],
     }
@@ -262,6 +261,13 @@ def run_bench(
     bench_plot(result, out_dir / "bench.png")
     log(f"wrote {out_dir / 'bench.json'}, bench.md, bench.png in {timing['total']:.0f} s")
     return result
+
+
+def _half_geometry_note(user_mesh: bool, field: bool, refit: bool) -> str:
+    fitted = "refit on kept frames" if refit else "shared (all frames)"
+    if not user_mesh:
+        return fitted
+    return f"3D/2D: user mesh; field: {fitted}" if field else "user mesh"
 
 
 # ------------------------------------------------------------------------------------------
@@ -332,16 +338,31 @@ def bench_markdown(result: dict) -> str:
         f"device {result['device']}, seed {result['seed']}.",
         "",
         "Scores: per-frame Dice (DSC) and recall averaged over the frames whose truth contains the class "
-        "(the paper's population rule); n = population size. 2D = the capture's predictions; 3D/2D = the "
-        f"predictions voted onto the mesh (|cos|-weighted per-vertex majority, cut-off {result['fusion']['cutoff_deg']:g} deg, "
-        f"mesh: {result['fusion']['mesh']}) and rendered back; Field = the semantic field trained on the predictions "
-        "(geometry fitted once, shared by all rows except half-frames), Field (annotations) = trained on the expert "
-        "annotations alone.",
-        "",
-        f"Half the frames: {result['half_frames_kept']} of {result['frames']} frames' predictions (every other frame) "
-        f"vote / teach; geometry for that row: {result['half_frames_geometry']}. All rows are scored on the same frames.",
+        "(the paper's population rule); n = population size.",
         "",
     ]
+    methods = result["methods"]
+    if "2d" in methods:
+        lines.append("- 2D: the capture's predictions themselves.")
+    if "3d2d" in methods:
+        lines.append(
+            "- 3D/2D: the predictions voted onto the mesh (|cos|-weighted per-vertex majority, cut-off "
+            f"{result['fusion']['cutoff_deg']:g} deg, mesh: {result['fusion']['mesh']}) and rendered back."
+        )
+    if "field" in methods:
+        lines.append(
+            "- Field: the semantic field trained on the predictions (geometry fitted once and shared by all rows, "
+            "half-frames aside: see below; only the semantic stage is refitted). Field (annotations): trained on the expert "
+            "annotations alone."
+        )
+    lines.append("")
+    if "half-frames" in result["perturbations"]:
+        lines += [
+            f"Half the frames: {result['half_frames_kept']} of {result['frames']} frames' predictions (every other "
+            f"frame) vote / teach; geometry for that row: {result['half_frames_geometry']}. All rows are scored on "
+            "the same frames.",
+            "",
+        ]
     for note in result.get("notes", []):
         lines += [f"Note: {note}.", ""]
 
@@ -396,7 +417,7 @@ def bench_plot(result: dict, path: str | Path) -> None:
     rows = result["rows"]
     perts = result["perturbations"]
     series = _series(result)
-    fig = Figure(figsize=(max(6.0, 2.2 * len(perts) + 2), 3.8), layout="constrained")
+    fig = Figure(figsize=(max(6.0, 2.2 * len(perts) + 2), 4.2), layout="constrained")
     axes = fig.subplots(1, 2, sharey=True)
     width = 0.8 / max(1, len(series))
     x = np.arange(len(perts))
@@ -412,5 +433,6 @@ def bench_plot(result: dict, path: str | Path) -> None:
         ax.set_ylim(0, 1)
         ax.grid(axis="y", alpha=0.3)
     axes[0].set_ylabel("score")
-    axes[1].legend(loc="lower right", fontsize="small")
+    fig.legend(*axes[0].get_legend_handles_labels(), loc="outside lower center", ncols=max(1, len(series)),
+               fontsize="small")
     fig.savefig(path, dpi=110)
