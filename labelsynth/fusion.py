@@ -22,6 +22,7 @@ from __future__ import annotations
 
 from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass, field
+from functools import cached_property
 from pathlib import Path
 from typing import TYPE_CHECKING
 
@@ -54,9 +55,10 @@ class FusedLabels:
     views: int = 0  # views that cast at least one vote
     caster: SurfaceCaster | None = field(default=None, repr=False)
 
-    @property
+    @cached_property
     def vertex_shares(self) -> np.ndarray:
-        """(V, C) votes normalised per vertex; all zeros for a vertex no view voted for."""
+        """(V, C) votes normalised per vertex; all zeros for a vertex no view voted for
+        (computed once: every rendered frame needs it)."""
         total = self.votes.sum(1, keepdims=True)
         return np.divide(self.votes, total, out=np.zeros_like(self.votes), where=total > 0)
 

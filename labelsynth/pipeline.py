@@ -130,12 +130,14 @@ def fit_geometry(
     images = [capture.load_image(i) for i in track(indices, "loading images", enabled=progress)]
     bank = RayBank(cams, images, device)
     del images
-    sdf = SDFField(geo.sdf).to(device)
+    sdf = SDFField(geo.sdf)
+    init_shape = sdf.initialise_shape([unit[i].forward for i in indices])
+    sdf = sdf.to(device)
     grid, gstats = train_geometry(sdf, bank, geo, seed=seed, progress=progress)
     for p in sdf.parameters():
         p.requires_grad_(False)  # the paper's stage 2: geometry frozen
     sem = SemanticField(sdf, None, grid, capture.classes, capture.normalization, recipe, device)
-    return sem, vars(gstats)
+    return sem, {**vars(gstats), "init_shape": init_shape}
 
 
 def fit_field(

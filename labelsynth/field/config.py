@@ -31,11 +31,16 @@ class GeometryConfig:
     lr_final_factor: float = 0.1
     eikonal_weight: float = 0.1
     cos_anneal_iters: int = 300
-    march_steps: int = 192
+    # Sharpness floor grows geometrically from inv_s_start to inv_s_end over the first
+    # inv_s_ramp fraction of training; the learned NeuS variance may go sharper still.
+    inv_s_start: float = 20.0
+    inv_s_end: float = 400.0
+    inv_s_ramp: float = 0.6
+    march_steps: int = 160
     occupancy_resolution: int = 64
     occupancy_every: int = 25
     occupancy_band: float = 4.0  # band = occupancy_band / inv_s (NeuS sharpness), in unit-cube units
-    occupancy_max_band: float = 0.1  # ...but never wider than this
+    occupancy_max_band: float = 0.08  # ...but never wider than this
     levels_start: int = 4  # progressive hash levels: start with this many...
     levels_every: int = 100  # ...and add one every this many iterations
     sdf: SDFConfig = field(default_factory=SDFConfig)

@@ -42,9 +42,9 @@ class OccupancyGrid:
         if jitter:
             pts = pts + (torch.rand_like(pts) - 0.5) * self.voxel
         sdf = sdf_fn(pts).reshape((self.resolution,) * 3)
-        occ = sdf.abs() <= band + self.voxel * 0.87
-        # Dilate by one cell so a surface moving during training is not lost.
-        occ = F.max_pool3d(occ[None, None].float(), kernel_size=3, stride=1, padding=1)[0, 0] > 0
+        # |sdf| <= band + the cell's half diagonal: the cell may hold a point within the band
+        # (for a true distance function; the eikonal term keeps it one).
+        occ = sdf.abs() <= band + self.voxel * (0.87 if not jitter else 1.3)
         self.occupied = occ
         return float(occ.float().mean())
 

@@ -26,7 +26,8 @@ class SDFConfig:
     hidden: int = 64
     feature_dim: int = 15  # geometry feature handed to the colour and semantic heads
     color_hidden: int = 64
-    init_radius: float = 0.5  # geometric initialisation: a sphere of this radius
+    init_shape: str = "auto"  # auto | sphere | plane (see SDFField.initialise_shape)
+    init_radius: float = 0.5  # sphere initialisation: radius in the unit cube
     init_variance: float = 0.3  # inv_s = exp(10 * variance)
 
 
@@ -84,9 +85,42 @@ class SDFField(nn.Module):
             self.sdf_l1.weight[1:].normal_(0.0, 1.0 / math.sqrt(h))
             self.sdf_l1.bias[1:].zero_()
 
+        self.register_buffer("inv_s_floor", torch.tensor(1.0), persistent=True)
+
+    def initialise_shape(self, view_dirs) -> str:
+        """Start from a shape the cameras can see: a plane facing them or a sphere.
+
+        A phone filming a wound stays on one side of the body: the viewing directions share a
+        hemisphere, and a plane through the region of interest, facing the cameras, is far
+        closer to the truth than a sphere. Cameras all around an object get the sphere.
+        Returns the shape chosen.
+        """
+        import numpy as np
+
+        dirs = np.asarray(view_dirs, dtype=np.float64)
+        mean = dirs.mean(0)
+        shape = self.cfg.init_shape
+        if shape == "auto":
+            shape = "plane" if np.linalg.norm(mean) > 0.5 else "sphere"
+        if shape == "plane":
+            normal = torch.tensor(-mean / np.linalg.norm(mean), dtype=torch.float32)  # towards the cameras
+            with torch.no_grad():
+                # softplus(z) - softplus(-z) = z: two hidden units make sdf = n . x exactly.
+                self.sdf_l0.weight[:2].zero_()
+                self.sdf_l0.weight[0, :3] = normal
+                self.sdf_l0.weight[1, :3] = -normal
+                self.sdf_l1.weight[0].normal_(0.0, 1e-4)
+                self.sdf_l1.weight[0, 0] = 1.0
+                self.sdf_l1.weight[0, 1] = -1.0
+                self.sdf_l1.bias[0] = 0.0
+        elif shape != "sphere":
+            raise ValueError(f"unknown init_shape '{shape}' (auto, sphere or plane)")
+        return shape
+
     @property
     def inv_s(self) -> torch.Tensor:
-        return torch.exp(self.variance * 10.0).clamp(1.0, 1e5)
+        """NeuS sharpness: learned, but never below a scheduled floor (set by training)."""
+        return torch.maximum(torch.exp(self.variance * 10.0), self.inv_s_floor).clamp(1.0, 1e5)
 
     def get_sdf(self, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """(N,3) -> sdf (N,) and geometry feature (N, feature_dim)."""

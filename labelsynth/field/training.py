@@ -155,6 +155,8 @@ def train_geometry(
         task = bar.add_task("geometry", total=cfg.iterations, status="")
         for it in range(cfg.iterations):
             field.encoding.set_active_levels(cfg.levels_start + it // max(cfg.levels_every, 1))
+            ramp = min(1.0, it / max(cfg.inv_s_ramp * cfg.iterations, 1.0))
+            field.inv_s_floor.fill_(cfg.inv_s_start * (cfg.inv_s_end / cfg.inv_s_start) ** ramp)
             if it % cfg.occupancy_every == 0:
                 occ = grid.update(field.sdf_batched, _band(cfg, field))
             origins, dirs, target = bank.sample(n_rays, gen)
@@ -183,10 +185,10 @@ def train_geometry(
             psnr = -10 * math.log10(max(mse, 1e-10))
             psnr_ema = psnr if it == 0 else 0.95 * psnr_ema + 0.05 * psnr
             spr_ema = spr if it == 0 else 0.95 * spr_ema + 0.05 * spr
-            bar.update(task, advance=1, status=f"psnr {psnr_ema:5.2f} rays {n_rays} spr {spr_ema:4.1f} s {float(field.inv_s):6.0f}")
+            bar.update(task, advance=1, status=f"psnr {psnr_ema:5.2f} rays {n_rays} spr {spr_ema:4.1f} s {float(field.inv_s.detach()):6.0f}")
     grid.update(field.sdf_batched, _band(cfg, field), jitter=False)
     field.eval()
-    stats = GeometryStats(cfg.iterations, time.time() - t0, psnr_ema, spr_ema, float(field.inv_s), occ)
+    stats = GeometryStats(cfg.iterations, time.time() - t0, psnr_ema, spr_ema, float(field.inv_s.detach()), occ)
     return grid, stats
 
 

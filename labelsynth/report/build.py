@@ -1,0 +1,265 @@
+"""Assemble report.json, report.html and the labelled mesh of an expand output folder."""
+
+from __future__ import annotations
+
+import json
+import time
+from collections.abc import Callable
+from pathlib import Path
+from typing import TYPE_CHECKING
+
+import cv2
+import numpy as np
+
+from ..capture.model import Capture
+from ..classes import ClassMap
+from ..errors import LabelsynthError
+from ..mesh_export import MESH_FORMATS, export_labelled_mesh
+from ..metrics import WOUND_BED
+from . import plots
+from .consistency import (
+    Check,
+    agreement,
+    checked_keys,
+    class_presence,
+    flag_frames,
+    leave_one_out,
+    pairwise_consistency,
+)
+from .html import render_html
+
+if TYPE_CHECKING:
+    from ..field.model import SemanticField
+
+REPORT_JSON = "report.json"
+REPORT_HTML = "report.html"
+
+
+def _inputs(capture: Capture, mode: str) -> tuple[dict[str, np.ndarray], dict[str, np.ndarray]]:
+    """Every annotation and prediction of the capture, by frame name."""
+    ann, pred = {}, {}
+    for i, f in enumerate(capture.frames):
+        a = capture.load_annotation(i)
+        if a is not None:
+            ann[f.name] = a
+        p = capture.load_prediction(i)
+        if p is not None:
+            pred[f.name] = p
+    return ann, pred
+
+
+def _training_input(name: str, mode: str, ann: dict, pred: dict) -> np.ndarray | None:
+    """The mask of a frame the field learnt from (mirrors ``pipeline.labelled_frames``)."""
+    if mode in ("annotations", "both") and name in ann:
+        return ann[name]
+    if mode in ("predictions", "both") and name in pred:
+        return pred[name]
+    return None
+
+
+def _median_over_present(frames: list[dict], field: str, key: str) -> float | None:
+    vals = [f[field][key] for f in frames if f.get(field) and key in f.get("_present", ())]
+    return float(np.median(vals)) if vals else None
+
+
+def build_report(
+    out_dir: str | Path,
+    capture: Capture,
+    sem: "SemanticField",
+    masks: dict[str, np.ndarray],
+    mode: str,
+    *,
+    progress: bool = True,
+    mesh_format: str | None = "ply",
+    mm_per_unit: float | None = None,
+    loo: bool = True,
+    seed: int = 0,
+    refit: Callable[[str], None] | None = None,
+) -> dict:
+    """Write OUT/report.json, OUT/report.html and OUT/mesh.ply (+ .glb); return the report.
+
+    ``masks`` are the field's masks by frame name (what expand wrote to OUT/masks).
+    ``mesh_format=None`` skips the mesh (and its areas). ``loo=False`` skips the
+    leave-one-view-out refits (then annotated frames are judged by agreement only).
+    ``refit(name)`` retrains ``sem.head`` without frame ``name``; the default refits the
+    semantic stage with ``pipeline.fit_semantics`` on frozen geometry.
+    """
+    t0 = time.time()
+    out_dir = Path(out_dir)
+    classes: ClassMap = capture.classes
+    names = capture.names
+    missing = [n for n in names if n not in masks]
+    if missing:
+        raise LabelsynthError(f"report: no field mask for frame(s) {', '.join(missing[:5])}")
+    if mesh_format is not None and mesh_format not in MESH_FORMATS:
+        raise LabelsynthError(f"--mesh-format must be one of {', '.join(MESH_FORMATS)}, not '{mesh_format}'")
+    ann, pred = _inputs(capture, mode)
+
+    # 1. agreement of every input with the field
+    frames: list[dict] = []
+    for name in names:
+        sources, by_source = [], {}
+        for source, store in (("annotation", ann), ("prediction", pred)):
+            if name in store:
+                sources.append(source)
+                by_source[source] = agreement(store[name], masks[name], classes)
+        ref = ann.get(name, pred.get(name))
+        present = set()
+        if ref is not None:
+            pa, pb = class_presence(ref, classes), class_presence(masks[name], classes)
+            present = {k for k in pa if pa[k] > 0 or pb[k] > 0}
+        frames.append({
+            "name": name,
+            "annotated": name in ann,
+            "sources": sources,
+            "agreement": by_source.get("annotation", by_source.get("prediction", {})),
+            "agreement_by_source": by_source,
+            "field_pixels": class_presence(masks[name], classes),
+            "flagged": False,
+            "reason": "",
+            "_present": present,
+        })
+
+    # 2. leave-one-view-out for the annotated frames
+    loo_masks: dict[str, np.ndarray] = {}
+    if loo and ann:
+        from ..pipeline import fit_semantics, labelled_frames
+
+        if refit is None:
+            def refit(name: str) -> None:
+                fit_semantics(sem, labelled_frames(capture, mode, sem.recipe, exclude={name}), seed=seed, progress=False)
+
+        candidates = [n for n in names if n in ann
+                      and len(labelled_frames(capture, mode, sem.recipe, exclude={n})) > 0]
+        loo_masks = leave_one_out(sem, capture, candidates, refit, progress=progress)
+    for f in frames:
+        if f["annotated"]:
+            m = loo_masks.get(f["name"])
+            f["loo_dice"] = None if m is None else agreement(ann[f["name"]], m, classes)
+
+    # 3. cross-view consistency of the inputs the field learnt from
+    views = [n for n in names if _training_input(n, mode, ann, pred) is not None]
+    cams = capture.unit_cameras()
+    index = {n: i for i, n in enumerate(names)}
+    pairwise = pairwise_consistency(
+        sem.caster(), [cams[index[n]] for n in views], [_training_input(n, mode, ann, pred) for n in views],
+        classes, progress=progress,
+    ) if views else []
+
+    # 4. flags
+    checks = []
+    for f in frames:
+        name = f["name"]
+        if f["annotated"] and f.get("loo_dice"):
+            keys = checked_keys(ann[name], loo_masks[name], classes)
+            checks.append(Check(name, "loo", {k: 1.0 - f["loo_dice"][k] for k in keys}))
+        elif f["sources"]:
+            ref = ann.get(name, pred.get(name))
+            keys = checked_keys(ref, masks[name], classes)
+            checks.append(Check(name, "agreement", {k: 1.0 - f["agreement"][k] for k in keys}))
+    flags = flag_frames(checks)
+    for f in frames:
+        f["flagged"], f["reason"] = flags.get(f["name"], (False, ""))
+
+    # 5. the labelled surface
+    mesh_info = None
+    if mesh_format is not None:
+        mesh_info = export_labelled_mesh(sem, out_dir, mesh_format=mesh_format, mm_per_unit=mm_per_unit).to_dict()
+
+    keys = [WOUND_BED] + [classes.classes[i].name for i in classes.wound_bed_indices]
+    shared = [v for i, row in enumerate(pairwise) for j, v in enumerate(row) if i < j and v is not None]
+    summary = {
+        "capture": str(capture.root),
+        "labels": mode,
+        "num_frames": len(names),
+        "num_annotated": len(ann),
+        "num_predicted": len(pred),
+        "keys": keys,
+        "median_agreement": {k: _median_over_present(frames, "agreement", k) for k in keys},
+        "median_loo_dice": {k: _median_over_present(frames, "loo_dice", k) for k in keys},
+        "mean_pairwise_dice": float(np.mean(shared)) if shared else None,
+        "flagged": [f["name"] for f in frames if f["flagged"]],
+        "mesh": mesh_info,
+        "flag_rule": "1 - Dice > median + max(3 * 1.4826 * MAD, 0.05) and > 0.15, per class, "
+                     "annotated frames by leave-one-out Dice, others by agreement",
+    }
+    for f in frames:
+        f.pop("_present")
+    report = {"frames": frames, "views": views, "pairwise": pairwise, "summary": summary}
+
+    # 6. figures and page
+    figures = {"agreement": plots.agreement_plot(frames, keys, classes),
+               "class_area": plots.class_area_plot(names, [f["field_pixels"] for f in frames], classes)}
+    if views:
+        figures["pairwise"] = plots.pairwise_heatmap(views, pairwise)
+    strips = {}
+    for f in frames:
+        if not f["flagged"]:
+            continue
+        name, i = f["name"], index[f["name"]]
+        if name in loo_masks:
+            inp, fm, label = ann[name], loo_masks[name], "field without this frame"
+        else:
+            inp, fm, label = ann.get(name, pred.get(name)), masks[name], "field"
+        strips[name] = plots.overlay_strip(capture.load_image(i), inp, fm, classes, f"{name}: {f['reason']}", label)
+    summary["seconds"] = time.time() - t0
+    (out_dir / REPORT_JSON).write_text(json.dumps(report, indent=2))
+    (out_dir / REPORT_HTML).write_text(render_html(report, figures, strips), encoding="utf-8")
+    return report
+
+
+def read_field_masks(out_dir: str | Path, names: list[str]) -> dict[str, np.ndarray]:
+    """OUT/masks/<name>.png for every frame, as written by expand."""
+    masks = {}
+    for name in names:
+        path = Path(out_dir) / "masks" / f"{name}.png"
+        m = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+        if m is None or m.ndim != 2:
+            raise LabelsynthError(f"{path}: missing or not a single-channel class-id mask")
+        masks[name] = m
+    return masks
+
+
+def rebuild_report(
+    out_dir: str | Path,
+    *,
+    device: str = "auto",
+    progress: bool = True,
+    mesh_format: str | None = None,
+    mm_per_unit: float | None = None,
+    loo: bool = True,
+) -> dict:
+    """Write report.json/html (and the mesh) of a finished OUT again, from OUT/field.pt and OUT/masks.
+
+    Without ``mesh_format`` / ``mm_per_unit`` the previous report's choices are kept.
+    """
+    from ..capture import load_capture
+    from ..field.model import SemanticField
+    from ..field.training import pick_device
+
+    out_dir = Path(out_dir)
+    run_path, field_path = out_dir / "run.json", out_dir / "field.pt"
+    for p in (run_path, field_path):
+        if not p.is_file():
+            raise LabelsynthError(f"{p}: not found (is {out_dir} the output of labelsynth expand?)")
+    try:
+        run = json.loads(run_path.read_text())
+        capture_dir, mode = run["capture"], run["labels"]
+    except (json.JSONDecodeError, KeyError, TypeError) as exc:
+        raise LabelsynthError(f"{run_path}: not a labelsynth run file ({exc})") from exc
+    previous = {}
+    if (out_dir / REPORT_JSON).is_file():
+        try:
+            previous = json.loads((out_dir / REPORT_JSON).read_text()).get("summary", {}) or {}
+        except json.JSONDecodeError:
+            previous = {}
+    prev_mesh = previous.get("mesh") or {}
+    if mesh_format is None:
+        mesh_format = "glb" if (out_dir / "mesh.glb").exists() else "ply"
+    if mm_per_unit is None:
+        mm_per_unit = (prev_mesh.get("areas") or {}).get("mm_per_unit")
+    capture = load_capture(capture_dir)
+    sem = SemanticField.load(field_path, pick_device(device))
+    masks = read_field_masks(out_dir, capture.names)
+    return build_report(out_dir, capture, sem, masks, mode, progress=progress, mesh_format=mesh_format,
+                        mm_per_unit=mm_per_unit, loo=loo, seed=int(run.get("seed", 0)))
