@@ -190,9 +190,11 @@ def _fill_unvoted(mesh: trimesh.Trimesh, votes: np.ndarray, iterations: int) -> 
         acc = np.zeros_like(share)
         cnt = np.zeros(len(share))
         for a, b in ((edges[:, 0], edges[:, 1]), (edges[:, 1], edges[:, 0])):
-            k = known[b]
-            np.add.at(acc, a[k], share[b[k]])
-            np.add.at(cnt, a[k], 1.0)
+            k = known[b] & ~known[a]
+            a_k, b_k = a[k], b[k]
+            cnt += np.bincount(a_k, minlength=len(share))
+            for j in range(share.shape[1]):
+                acc[:, j] += np.bincount(a_k, weights=share[b_k, j], minlength=len(share))
         new = (~known) & (cnt > 0)
         if not new.any():
             break

@@ -160,3 +160,20 @@ def test_load_mesh_unit_maps_world_to_unit(tmp_path):
     assert np.allclose(unit.vertices, mesh.vertices, atol=1e-5)
     with pytest.raises(LabelsynthError, match="not found"):
         load_mesh_unit(tmp_path / "missing.ply", norm)
+
+
+def test_unvoted_vertices_take_their_voted_neighbours_label_but_unseen_islands_stay_empty():
+    from labelsynth.fusion import _fill_unvoted
+
+    square = grid_square(0.5, 0.0, cells=4)
+    island = grid_square(0.1, 1.0, cells=1)
+    mesh = trimesh.util.concatenate([square, island])
+    votes = np.zeros((len(mesh.vertices), CLASSES.num_classes))
+    votes[: len(square.vertices), 2] = 1.0
+    centre = int(np.argmin(np.linalg.norm(square.vertices, axis=1)))
+    votes[centre] = 0.0
+    filled = _fill_unvoted(mesh, votes, iterations=2)
+    assert filled[centre].argmax() == 2 and 0 < filled[centre].sum() < 1e-3  # fills, never outvotes
+    assert not filled[len(square.vertices):].any()
+    assert np.array_equal(filled[: len(square.vertices)][np.arange(len(square.vertices)) != centre],
+                          votes[: len(square.vertices)][np.arange(len(square.vertices)) != centre])
