@@ -90,12 +90,35 @@ def expand(
     seed: int = typer.Option(0, help="Random seed."),
     set_: list[str] = typer.Option([], "--set", help="Override a recipe value, e.g. --set geometry.iterations=500"),
     force: bool = typer.Option(False, help="Replace a finished OUT."),
+    mesh_format: str = typer.Option("ply", "--mesh-format", help="ply | glb: OUT/mesh.ply is always written; glb adds OUT/mesh.glb."),
+    mm_per_unit: Optional[float] = typer.Option(None, "--mm-per-unit", min=0.0, help="Millimetres per scene unit: class areas in mm² too."),
 ) -> None:
     """Fit a 3D semantic field to the capture and render consistent masks for every frame."""
     from .pipeline import expand as run_expand
 
-    result = run_expand(capture, out, labels=labels, recipe=recipe, device=device, seed=seed, overrides=set_, force=force)
+    extra = {}
+    if mesh_format != "ply" or mm_per_unit is not None:
+        extra = {"mesh_format": mesh_format, "mm_per_unit": mm_per_unit}
+    result = run_expand(capture, out, labels=labels, recipe=recipe, device=device, seed=seed, overrides=set_, force=force, **extra)
     typer.echo(result.summary())
+
+
+@app.command()
+@friendly_errors
+def report(
+    out: Path = typer.Argument(..., help="Output folder of labelsynth expand (field.pt, run.json, masks/)."),
+    device: str = typer.Option("auto", help="auto | cpu | cuda"),
+    mesh_format: Optional[str] = typer.Option(None, "--mesh-format", help="ply | glb (default: as before)."),
+    mm_per_unit: Optional[float] = typer.Option(None, "--mm-per-unit", min=0.0, help="Millimetres per scene unit (default: as before)."),
+    loo: bool = typer.Option(True, "--loo/--no-loo", help="Refit the semantic stage without each annotated frame (the honest test)."),
+) -> None:
+    """Rebuild OUT/report.json, OUT/report.html and the labelled mesh from a finished expand."""
+    from .report import rebuild_report
+
+    rep = rebuild_report(out, device=device, mesh_format=mesh_format, mm_per_unit=mm_per_unit, loo=loo)
+    flagged = rep["summary"]["flagged"]
+    typer.echo(f"wrote {out / 'report.json'} and {out / 'report.html'}")
+    typer.echo(f"{len(rep['frames'])} frames, {len(flagged)} flagged" + (f": {', '.join(flagged)}" if flagged else ""))
 
 
 @app.command()

@@ -255,7 +255,8 @@ def rebuild_report(
             previous = {}
     prev_mesh = previous.get("mesh") or {}
     if mesh_format is None:
-        mesh_format = "glb" if (out_dir / "mesh.glb").exists() else "ply"
+        had_glb = "mesh.glb" in prev_mesh.get("files", []) or (out_dir / "mesh.glb").exists()
+        mesh_format = "glb" if had_glb else "ply"
     if mm_per_unit is None:
         mm_per_unit = (prev_mesh.get("areas") or {}).get("mm_per_unit")
     capture = load_capture(capture_dir)

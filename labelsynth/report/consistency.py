@@ -223,7 +223,7 @@ def flag_frames(checks: Sequence[Check]) -> dict[str, tuple[bool, str]]:
     flagged when ``1 - Dice > median + max(3 * 1.4826 * MAD, 0.05)`` over the group's frames
     and ``1 - Dice > 0.15``. A group of fewer than 3 frames borrows the values of all groups
     for its median and MAD; with fewer than 3 frames overall only ``1 - Dice > 0.5`` flags.
-    The reason names the key that exceeds its threshold by the most.
+    The reason lists every key over its threshold, the largest excess first.
     """
     by_key_group: dict[tuple[str, str], list[float]] = {}
     by_key: dict[str, list[float]] = {}
@@ -233,7 +233,7 @@ def flag_frames(checks: Sequence[Check]) -> dict[str, tuple[bool, str]]:
             by_key.setdefault(k, []).append(d)
     out: dict[str, tuple[bool, str]] = {}
     for c in checks:
-        worst: tuple[float, str] | None = None
+        hits: list[tuple[float, str]] = []
         for k, d in c.disagreement.items():
             values = by_key_group[(k, c.group)]
             if len(values) < MIN_GROUP:
@@ -243,11 +243,8 @@ def flag_frames(checks: Sequence[Check]) -> dict[str, tuple[bool, str]]:
             else:
                 med, thr = _threshold(values)
             if d > thr and d > ABS_FLOOR:
-                excess = d - thr
                 what = "LOO Dice" if c.group == "loo" else "agreement Dice"
-                label = k.replace("_", " ")
-                reason = f"{label} {what} {1 - d:.2f} vs median {1 - med:.2f}"
-                if worst is None or excess > worst[0]:
-                    worst = (excess, reason)
-        out[c.name] = (worst is not None, "" if worst is None else worst[1])
+                hits.append((d - thr, f"{k.replace('_', ' ')} {what} {1 - d:.2f} vs median {1 - med:.2f}"))
+        hits.sort(key=lambda h: -h[0])
+        out[c.name] = (bool(hits), "; ".join(r for _, r in hits))
     return out
