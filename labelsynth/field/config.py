@@ -30,6 +30,7 @@ class GeometryConfig:
     lr: float = 1e-2
     lr_final_factor: float = 0.1
     eikonal_weight: float = 0.1
+    eikonal_samples: int = 1024  # points per batch that pay for second derivatives
     cos_anneal_iters: int = 300
     # Sharpness floor grows geometrically from inv_s_start to inv_s_end over the first
     # inv_s_ramp fraction of training; the learned NeuS variance may go sharper still.

@@ -122,9 +122,9 @@ class SDFField(nn.Module):
         """NeuS sharpness: learned, but never below a scheduled floor (set by training)."""
         return torch.maximum(torch.exp(self.variance * 10.0), self.inv_s_floor).clamp(1.0, 1e5)
 
-    def get_sdf(self, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    def get_sdf(self, x: torch.Tensor, twice_differentiable: bool = False) -> tuple[torch.Tensor, torch.Tensor]:
         """(N,3) -> sdf (N,) and geometry feature (N, feature_dim)."""
-        h = torch.cat([x, self.encoding(x)], dim=-1)
+        h = torch.cat([x, self.encoding(x, twice_differentiable)], dim=-1)
         h = F.softplus(self.sdf_l0(h), beta=100)
         out = self.sdf_l1(h)
         return out[:, 0], out[:, 1:]
@@ -135,7 +135,7 @@ class SDFField(nn.Module):
         """sdf, feature and d sdf / dx (exact, by autograd; ``create_graph`` for the eikonal loss)."""
         with torch.enable_grad():
             x = x.detach().requires_grad_(True)
-            sdf, feature = self.get_sdf(x)
+            sdf, feature = self.get_sdf(x, twice_differentiable=create_graph)
             (grad,) = torch.autograd.grad(sdf.sum(), x, create_graph=create_graph)
         return sdf, feature, grad
 

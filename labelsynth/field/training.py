@@ -102,13 +102,23 @@ def render_rays_rgb(
     steps: int,
     train: bool,
 ):
-    """NeuS colour rendering of a batch of rays; returns rgb, opacity, samples, gradients."""
+    """NeuS colour rendering of a batch of rays; returns rgb, opacity and the samples.
+
+    The SDF gradient (for the NeuS cosine and the colour head's normal) is first order and
+    detached: second derivatives are paid only on the eikonal subset (see train_geometry),
+    which is where most of the time went when every sample carried them.
+    """
     samples = march(origins, dirs, grid, steps=steps, perturb=train)
     n = origins.shape[0]
     bg = field.get_background(dirs)
     if samples.positions.shape[0] == 0:
-        return bg, torch.zeros(n, device=origins.device), samples, None
-    sdf, feature, grad = field.sdf_and_gradient(samples.positions, create_graph=train)
+        return bg, torch.zeros(n, device=origins.device), samples
+    with torch.enable_grad():
+        x = samples.positions.detach().requires_grad_(True)
+        sdf, feature = field.get_sdf(x)
+        (grad,) = torch.autograd.grad(sdf.sum(), x, retain_graph=train)
+    if not train:
+        sdf, feature = sdf.detach(), feature.detach()
     normal = F.normalize(grad, dim=-1)
     alpha = neus_alpha(sdf, grad, samples.dirs, samples.deltas, field.inv_s, cos_anneal_ratio)
     weights = composite_weights(alpha, samples.ray_index, n)
@@ -116,7 +126,7 @@ def render_rays_rgb(
     rgb = accumulate(color, weights, samples.ray_index, n)
     opacity = accumulate_scalar(weights, samples.ray_index, n)
     rgb = rgb + (1.0 - opacity)[:, None] * bg
-    return rgb, opacity, samples, grad
+    return rgb, opacity, samples
 
 
 def _band(cfg: GeometryConfig, field: SDFField) -> float:
@@ -161,16 +171,19 @@ def train_geometry(
                 occ = grid.update(field.sdf_batched, _band(cfg, field))
             origins, dirs, target = bank.sample(n_rays, gen)
             cos_ratio = min(1.0, it / max(cfg.cos_anneal_iters, 1))
-            rgb, opacity, samples, grad = render_rays_rgb(
+            rgb, opacity, samples = render_rays_rgb(
                 field, grid, origins, dirs, cos_ratio, cfg.march_steps, train=True
             )
             loss = F.l1_loss(rgb, target)
-            if grad is not None:
-                # Eikonal on the ray samples plus random points, so the whole cube stays an SDF.
-                rand_pts = torch.rand(max(256, n_rays // 4), 3, device=device, generator=gen) * 2 - 1
-                _, _, rand_grad = field.sdf_and_gradient(rand_pts, create_graph=True)
-                all_grad = torch.cat([grad, rand_grad])
-                loss = loss + cfg.eikonal_weight * ((all_grad.norm(dim=-1) - 1.0) ** 2).mean()
+            # Eikonal on a subset of ray samples (near the surface, where it matters) plus random
+            # points of the cube (so the whole cube stays a distance function).
+            pts = samples.positions
+            if pts.shape[0] > cfg.eikonal_samples:
+                pick = torch.randint(0, pts.shape[0], (cfg.eikonal_samples,), device=device, generator=gen)
+                pts = pts[pick]
+            rand_pts = torch.rand(cfg.eikonal_samples // 4, 3, device=device, generator=gen) * 2 - 1
+            _, _, eik_grad = field.sdf_and_gradient(torch.cat([pts, rand_pts]), create_graph=True)
+            loss = loss + cfg.eikonal_weight * ((eik_grad.norm(dim=-1) - 1.0) ** 2).mean()
             opt.zero_grad(set_to_none=True)
             loss.backward()
             opt.step()
