@@ -1,0 +1,32 @@
+"""notebooks/quickstart.ipynb runs top to bottom (tiny settings) with a real Jupyter kernel."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import nbformat
+import pytest
+from nbclient import NotebookClient
+
+NOTEBOOK = Path(__file__).resolve().parents[1] / "notebooks" / "quickstart.ipynb"
+
+
+@pytest.mark.slow
+def test_quickstart_notebook_runs(tmp_path, monkeypatch):
+    from jupyter_client.kernelspec import KernelSpecManager
+
+    if "python3" not in KernelSpecManager().find_kernel_specs():
+        pytest.skip("no python3 Jupyter kernel (python -m ipykernel install --user)")
+    monkeypatch.setenv("LABELSYNTH_NOTEBOOK_TINY", "1")
+    monkeypatch.setenv("LABELSYNTH_NOTEBOOK_DIR", str(tmp_path / "work"))
+    monkeypatch.setenv("MPLBACKEND", "Agg")
+    nb = nbformat.read(NOTEBOOK, as_version=4)
+    NotebookClient(nb, kernel_name="python3", timeout=900, resources={"metadata": {"path": str(tmp_path)}}).execute()
+    errors = [o for c in nb.cells if c.cell_type == "code" for o in c.get("outputs", []) if o.get("output_type") == "error"]
+    assert not errors
+    out = tmp_path / "work" / "out"
+    report = json.loads((out / "report.json").read_text())
+    assert len(report["frames"]) == 6
+    text = "".join(o.get("text", "") for c in nb.cells if c.cell_type == "code" for o in c.get("outputs", []))
+    assert "annotated:" in text and "wound bed" in text
