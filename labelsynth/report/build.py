@@ -129,8 +129,8 @@ def build_report(
             def refit(name: str) -> None:
                 fit_semantics(sem, labelled_frames(capture, mode, sem.recipe, exclude={name}), seed=seed, progress=False)
 
-        candidates = [n for n in names if n in ann
-                      and len(labelled_frames(capture, mode, sem.recipe, exclude={n})) > 0]
+        taught = [n for n in names if _training_input(n, mode, ann, pred) is not None]
+        candidates = [n for n in names if n in ann and any(t != n for t in taught)]  # someone else left to learn from
         loo_masks = leave_one_out(sem, capture, candidates, refit, progress=progress)
     for f in frames:
         if f["annotated"]:
