@@ -96,10 +96,10 @@ def expand(
     """Fit a 3D semantic field to the capture and render consistent masks for every frame."""
     from .pipeline import expand as run_expand
 
-    extra = {}
-    if mesh_format != "ply" or mm_per_unit is not None:
-        extra = {"mesh_format": mesh_format, "mm_per_unit": mm_per_unit}
-    result = run_expand(capture, out, labels=labels, recipe=recipe, device=device, seed=seed, overrides=set_, force=force, **extra)
+    result = run_expand(
+        capture, out, labels=labels, recipe=recipe, device=device, seed=seed, overrides=set_, force=force,
+        mesh_format=mesh_format, mm_per_unit=mm_per_unit,
+    )
     typer.echo(result.summary())
 
 

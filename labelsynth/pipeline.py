@@ -26,6 +26,7 @@ from .field.config import Recipe, load_recipe
 from .field.model import SemanticField
 from .field.sdf import SDFField
 from .field.training import (
+    BakedRays,
     LabelledFrame,
     RayBank,
     bake_semantic_rays,
@@ -107,7 +108,7 @@ def labelled_frames(
             mask = predictions.get(frame.name) if predictions is not None else capture.load_prediction(i)
             weight = 1.0
         if mask is not None:
-            out.append(LabelledFrame(cams[i], mask, weight))
+            out.append(LabelledFrame(cams[i], mask, weight, frame.name))
     return out
 
 
@@ -162,17 +163,26 @@ def fit_semantics(
     sem: SemanticField,
     frames: list[LabelledFrame],
     *,
+    exclude: set[str] = frozenset(),
+    baked: BakedRays | None = None,
     seed: int = 0,
     progress: bool = True,
 ) -> dict:
     """(Re)train the semantic head on frozen geometry from the given labelled frames.
 
-    Cheap compared with geometry, so leave-one-out and benchmarks call it repeatedly.
+    Pass ``baked`` (from an earlier call's ``sem.baked``) with ``exclude`` to leave frames out
+    without re-sampling the rays: leave-one-out then costs only the head's training.
     """
     recipe = sem.recipe
-    baked = bake_semantic_rays(
-        sem.sdf, sem.grid, frames, sem.classes, recipe.semantic, recipe.geometry.march_steps, seed=seed, progress=progress
-    )
+    if baked is None:
+        baked = bake_semantic_rays(
+            sem.sdf, sem.grid, frames, sem.classes, recipe.semantic, recipe.geometry.march_steps, seed=seed, progress=progress
+        )
+        sem.baked = baked
+    if exclude:
+        baked = baked.without(set(exclude))
+        if len(baked) == 0:
+            raise LabelsynthError("no labelled pixels left after leaving out " + ", ".join(sorted(exclude)))
     head = make_semantic_head(sem.sdf, sem.classes, recipe.semantic)
     stats = train_semantic(head, baked, sem.classes, recipe.semantic, seed=seed, progress=progress)
     sem.head = head
@@ -240,6 +250,8 @@ def expand(
     force: bool = False,
     progress: bool = True,
     report: bool = True,
+    mesh_format: str = "ply",
+    mm_per_unit: float | None = None,
 ) -> ExpandResult:
     """Fit the semantic field to a capture and write OUT per DESIGN.md."""
     capture = load_capture(capture_dir)
@@ -261,7 +273,10 @@ def expand(
             from .report import build_report
 
             t0 = time.time()
-            build_report(partial, capture, sem, masks, mode, progress=progress)
+            build_report(
+                partial, capture, sem, masks, mode, progress=progress, mesh_format=mesh_format,
+                mm_per_unit=mm_per_unit, seed=seed,
+            )
             stats["seconds"]["report"] = time.time() - t0
         (partial / "run.json").write_text(
             json.dumps(

@@ -17,7 +17,7 @@ from .config import Recipe, _build
 from .rendering import OccupancyGrid
 from .sdf import SDFField
 from .semantic import SemanticHead
-from .training import make_semantic_head
+from .training import BakedRays, make_semantic_head
 
 
 @dataclass
@@ -40,6 +40,7 @@ class SemanticField:
     normalization: SceneNormalization
     recipe: Recipe
     device: torch.device
+    baked: "BakedRays | None" = field(default=None, repr=False)  # semantic training rays, for refits
     _mesh: trimesh.Trimesh | None = field(default=None, repr=False)
     _caster: SurfaceCaster | None = field(default=None, repr=False)
 
@@ -113,7 +114,9 @@ class SemanticField:
         recipe = _build(Recipe, state["recipe"], str(path))
         classes = ClassMap(tuple(ClassInfo(c["id"], c["name"], tuple(c["color"]), c["wound_bed"]) for c in state["classes"]["classes"]))
         sdf = SDFField(recipe.geometry.sdf).to(device)
-        sdf.load_state_dict(state["sdf"])
+        sdf_state = state["sdf"]
+        sdf_state.setdefault("inv_s_floor", torch.tensor(1.0))  # files from before the floor existed
+        sdf.load_state_dict(sdf_state)
         sdf.eval()
         grid = OccupancyGrid(state["grid"]["resolution"], device)
         grid.load_state_dict(state["grid"])

@@ -217,6 +217,7 @@ class LabelledFrame:
     camera: Camera  # unit-cube coordinates, full resolution
     mask: np.ndarray  # (H, W) uint8 class ids, 255 ignore
     weight: float = 1.0
+    name: str = ""
 
 
 @dataclass
@@ -228,10 +229,29 @@ class BakedRays:
     weights: torch.Tensor  # (R, K)
     labels: torch.Tensor  # (R,) class index (not id)
     ray_weight: torch.Tensor  # (R,)
-    class_counts: np.ndarray  # (C,) label pixels per class index over the used masks
+    frame_of_ray: torch.Tensor  # (R,) index into frame_names
+    frame_names: list[str]
+    frame_class_counts: np.ndarray  # (F, C) label pixels per frame and class index
 
     def __len__(self) -> int:
         return self.labels.shape[0]
+
+    @property
+    def class_counts(self) -> np.ndarray:
+        """(C,) label pixels per class over the used masks (the paper's N_y)."""
+        return self.frame_class_counts.sum(0)
+
+    def without(self, names: set[str]) -> "BakedRays":
+        """The same rays minus those of the named frames: leave-one-out without re-baking."""
+        keep_frames = [i for i, n in enumerate(self.frame_names) if n not in names]
+        keep = torch.isin(self.frame_of_ray, torch.tensor(keep_frames, dtype=torch.long, device=self.frame_of_ray.device))
+        remap = torch.full((len(self.frame_names),), -1, dtype=torch.long, device=self.frame_of_ray.device)
+        remap[keep_frames] = torch.arange(len(keep_frames), device=remap.device)
+        return BakedRays(
+            self.positions[keep], self.features[keep], self.weights[keep], self.labels[keep], self.ray_weight[keep],
+            remap[self.frame_of_ray[keep]], [self.frame_names[i] for i in keep_frames],
+            self.frame_class_counts[keep_frames],
+        )
 
 
 @torch.no_grad()
@@ -298,11 +318,11 @@ def bake_semantic_rays(
     rng = np.random.default_rng(seed)
     lut = classes.id_to_index_lut()
     device = field.encoding.table.device
-    counts = np.zeros(classes.num_classes, dtype=np.int64)
+    frame_counts = np.zeros((len(frames), classes.num_classes), dtype=np.int64)
     parts: list[tuple] = []
     with make_progress(progress) as bar:
         task = bar.add_task("baking rays", total=len(frames), status="")
-        for frame in frames:
+        for fi, frame in enumerate(frames):
             cam = frame.camera.scaled(cfg.train_scale)
             mask = _resize(frame.mask, cam, cv2.INTER_NEAREST)
             idx = lut[mask.reshape(-1)]
@@ -310,7 +330,7 @@ def bake_semantic_rays(
             bar.advance(task)
             if valid.size == 0:
                 continue
-            counts += np.bincount(idx[valid], minlength=classes.num_classes)
+            frame_counts[fi] = np.bincount(idx[valid], minlength=classes.num_classes)
             if valid.size > cfg.max_rays_per_frame:
                 valid = rng.choice(valid, cfg.max_rays_per_frame, replace=False)
             pixels = np.stack([valid % cam.width + 0.5, valid // cam.width + 0.5], -1)
@@ -319,13 +339,16 @@ def bake_semantic_rays(
                 field, grid, torch.from_numpy(o).to(device), torch.from_numpy(d).to(device), steps, cfg.max_samples_per_ray
             )
             labels = torch.from_numpy(idx[valid]).to(device)
-            parts.append((pos, feat, w, labels, torch.full((len(valid),), float(frame.weight), device=device)))
+            n = len(valid)
+            parts.append((pos, feat, w, labels, torch.full((n,), float(frame.weight), device=device),
+                          torch.full((n,), fi, dtype=torch.long, device=device)))
     if not parts:
         from ..errors import LabelsynthError
 
         raise LabelsynthError("no labelled pixels: every annotation/prediction mask is empty or ignore")
-    cat = [torch.cat([p[i] for p in parts]) for i in range(5)]
-    return BakedRays(*cat, class_counts=counts)
+    cat = [torch.cat([p[i] for p in parts]) for i in range(6)]
+    names = [f.name or str(i) for i, f in enumerate(frames)]
+    return BakedRays(*cat, frame_names=names, frame_class_counts=frame_counts)
 
 
 def weighted_cross_entropy(

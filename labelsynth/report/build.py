@@ -127,7 +127,11 @@ def build_report(
 
         if refit is None:
             def refit(name: str) -> None:
-                fit_semantics(sem, labelled_frames(capture, mode, sem.recipe, exclude={name}), seed=seed, progress=False)
+                if sem.baked is not None:  # the rays of the full fit, minus this frame's: no re-sampling
+                    fit_semantics(sem, [], exclude={name}, baked=sem.baked, seed=seed, progress=False)
+                else:
+                    frames = labelled_frames(capture, mode, sem.recipe, exclude={name})
+                    fit_semantics(sem, frames, seed=seed, progress=False)
 
         taught = [n for n in names if _training_input(n, mode, ann, pred) is not None]
         candidates = [n for n in names if n in ann and any(t != n for t in taught)]  # someone else left to learn from
