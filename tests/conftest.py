@@ -1,7 +1,58 @@
-"""Shared test fixtures."""
+"""Shared test fixtures.
+
+The one expensive fixture is ``tiny_expanded``: a synthetic wound capture (8 frames, 96x72,
+4 annotated, one annotation deliberately shifted) expanded once with the fast recipe and the
+report (leave-one-out included). Tests of the field, the outputs and the report share it, so
+the suite fits geometry only once.
+"""
+
+from __future__ import annotations
 
 import os
+from dataclasses import dataclass
+from pathlib import Path
 
-# Tests must never need a display or a GPU, and should not fight over the 2 CPU cores.
+# Tests must never need a display or a GPU.
 os.environ.setdefault("MPLBACKEND", "Agg")
 os.environ.setdefault("CUDA_VISIBLE_DEVICES", "")
+
+import cv2  # noqa: E402
+import numpy as np  # noqa: E402
+import pytest  # noqa: E402
+
+TINY_OVERRIDES = [
+    "geometry.iterations=250",
+    "geometry.train_scale=1.0",
+    "geometry.levels_every=25",
+    "semantic.iterations=150",
+    "semantic.train_scale=1.0",
+    "render.mesh_resolution=128",
+]
+
+
+@dataclass
+class TinyRun:
+    capture_dir: Path
+    truth_dir: Path
+    out: Path
+    result: object
+    shifted: str  # the annotation that was shifted (must be flagged)
+    good: list[str]  # the other annotated frames
+    capture_bytes: dict  # every file of the capture before the run
+
+
+@pytest.fixture(scope="session")
+def tiny_expanded(tmp_path_factory) -> TinyRun:
+    from labelsynth.pipeline import expand
+    from labelsynth.synth import SynthConfig, synthesize
+
+    root = tmp_path_factory.mktemp("tiny_expanded")
+    syn = synthesize(root / "syn", SynthConfig(frames=8, annotated=4, width=96, height=72, seed=3), progress=False)
+    shifted = syn.annotated[1]
+    path = syn.capture_dir / "annotations" / f"{shifted}.png"
+    cv2.imwrite(str(path), np.roll(cv2.imread(str(path), cv2.IMREAD_UNCHANGED), 24, axis=1))
+    before = {p: p.read_bytes() for p in syn.capture_dir.rglob("*") if p.is_file()}
+    result = expand(syn.capture_dir, root / "out", labels="annotations", recipe="fast", device="cpu",
+                    overrides=TINY_OVERRIDES, progress=False)
+    return TinyRun(syn.capture_dir, syn.truth_dir, root / "out", result, shifted,
+                   [n for n in syn.annotated if n != shifted], before)

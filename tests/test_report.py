@@ -336,22 +336,13 @@ def test_rebuild_report_and_cli(tmp_path, monkeypatch):
 
 
 # ------------------------------------------------------------------------------------------
-@pytest.mark.slow
-def test_real_field_flags_a_shifted_annotation(tmp_path):
+def test_real_field_flags_a_shifted_annotation(tiny_expanded):
     """End to end on a synthetic wound: one of four annotations shifted -> flagged, others not."""
-    from labelsynth.pipeline import expand
-    from labelsynth.synth import SynthConfig, synthesize
-
-    syn = synthesize(tmp_path / "syn", SynthConfig(frames=8, annotated=4, width=96, height=72, seed=0), progress=False)
-    bad_name = syn.annotated[1]
-    path = syn.capture_dir / "annotations" / f"{bad_name}.png"
-    cv2.imwrite(str(path), np.roll(cv2.imread(str(path), cv2.IMREAD_UNCHANGED), 24, axis=1))
-    expand(syn.capture_dir, tmp_path / "out", recipe="fast", device="cpu", progress=False,
-           overrides=os.environ.get("LABELSYNTH_TEST_OVERRIDES",
-                                    "geometry.iterations=300,semantic.iterations=150,render.mesh_resolution=96").split(","))
-    report = json.loads((tmp_path / "out" / "report.json").read_text())
+    out = tiny_expanded.out
+    report = json.loads((out / "report.json").read_text())
     annotated = {f["name"]: f for f in report["frames"] if f["annotated"]}
-    assert set(annotated) == set(syn.annotated)
+    bad_name = tiny_expanded.shifted
+    assert set(annotated) == {bad_name, *tiny_expanded.good}
     assert annotated[bad_name]["flagged"], annotated[bad_name]
     assert not any(f["flagged"] for n, f in annotated.items() if n != bad_name), annotated
-    assert (tmp_path / "out" / "report.html").is_file() and (tmp_path / "out" / "mesh.ply").is_file()
+    assert (out / "report.html").is_file() and (out / "mesh.ply").is_file()

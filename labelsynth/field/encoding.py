@@ -14,6 +14,9 @@ import torch
 from torch import nn
 
 _PRIMES = (1, 2654435761, 805459861)
+# The same primes as wrapped int32 (two's complement): products keep the same low bits.
+_PRIME_Y = _PRIMES[1] - 2**32
+_PRIME_Z = _PRIMES[2]
 
 
 class HashGridEncoding(nn.Module):
@@ -48,8 +51,21 @@ class HashGridEncoding(nn.Module):
         self.register_buffer("offsets", torch.tensor(offsets[:-1], dtype=torch.long), persistent=False)
         self.register_buffer("dense", torch.tensor(dense, dtype=torch.bool), persistent=False)
         self.active_levels = levels
-        corners = torch.tensor([[(c >> 0) & 1, (c >> 1) & 1, (c >> 2) & 1] for c in range(8)], dtype=torch.long)
-        self.register_buffer("corners", corners, persistent=False)
+        # Corner c of a cell has bits (x, y, z) = (c >> 2, c >> 1, c) & 1: x slowest, matching
+        # the (2, 2, 2) layout of the weights below.
+        bits = torch.tensor([[(c >> 2) & 1, (c >> 1) & 1, c & 1] for c in range(8)], dtype=torch.long)
+        self.register_buffer("corner_bits", bits.T.contiguous(), persistent=False)
+        self.n_dense = sum(dense)
+        if any(dense[self.n_dense :]):
+            raise ValueError("dense levels must come first")
+        stride = torch.tensor(resolutions, dtype=torch.int64) + 1
+        dense_off = bits[None, :, 0] + bits[None, :, 1] * stride[:, None] + bits[None, :, 2] * stride[:, None] ** 2
+        self.register_buffer("dense_corner_offsets", dense_off.to(torch.int32), persistent=False)
+        for size, is_dense in zip(sizes, dense):
+            if not is_dense and size & (size - 1):
+                raise ValueError("hashed tables must have a power-of-two size")
+        self.register_buffer("hash_masks", torch.tensor([size - 1 for size in sizes], dtype=torch.int32), persistent=False)
+        self.register_buffer("offsets32", torch.tensor(offsets[:-1], dtype=torch.int32), persistent=False)
         self.table = nn.Parameter(torch.empty(offsets[-1], features_per_level).uniform_(-init_scale, init_scale))
 
     @property
@@ -61,28 +77,38 @@ class HashGridEncoding(nn.Module):
         self.active_levels = int(max(1, min(active, self.levels)))
 
     def _lookup(self, x: torch.Tensor):
-        """Corner indices (N, L, 8), per-axis fractions (N, L, 3) and the clamp mask (N, 3)."""
-        n, L = x.shape[0], self.active_levels
-        res, sizes, offsets, dense = self.resolutions[:L], self.table_sizes[:L], self.offsets[:L], self.dense[:L]
+        """Corner indices (N, L, 8), per-axis fractions (N, L, 3) and the clamp mask (N, 3).
+
+        Written for CPU speed: int32 arithmetic (only the low bits of the hash matter, and
+        the tables are powers of two), dense and hashed levels computed apart, and 8-corner
+        tensors built by gathering along a short last axis rather than 5-D broadcasting.
+        """
+        L = self.active_levels
+        res = self.resolutions[:L]
         u_raw = (x + 1.0) * 0.5
         inside = (u_raw > 0.0) & (u_raw < 1.0)
-        u = u_raw.clamp(0.0, 1.0)
-        pos = u[:, None, :] * res[None, :, None]  # (N, L, 3)
-        base = torch.minimum(torch.floor(pos).detach(), res[None, :, None] - 1)
-        frac = pos - base
-        base = base.long()
-        coord = torch.stack([base, base + 1], dim=-1)  # (N, L, 3, 2)
-        stride = res.long() + 1
-        mult = torch.where(
-            dense[:, None],
-            torch.stack([torch.ones_like(stride), stride, stride * stride], -1),
-            torch.tensor(_PRIMES, device=x.device, dtype=torch.long)[None, :].expand(L, 3),
-        )  # (L, 3): dense levels use a linear index, hashed levels xor of coordinate * prime
-        parts = coord * mult[None, :, :, None]
-        px, py, pz = parts[:, :, 0, :, None, None], parts[:, :, 1, None, :, None], parts[:, :, 2, None, None, :]
-        idx = torch.where(dense[None, :, None, None, None], px + py + pz, px ^ py ^ pz)  # (N, L, 2, 2, 2)
-        idx = torch.remainder(idx, sizes[None, :, None, None, None]) + offsets[None, :, None, None, None]
-        return idx.reshape(n, L, 8), frac, inside
+        pos = u_raw.clamp(0.0, 1.0)[:, None, :] * res[None, :, None]  # (N, L, 3)
+        base_f = torch.minimum(torch.floor(pos), res[None, :, None] - 1)
+        frac = pos - base_f
+        base = base_f.to(torch.int32)
+        cx, cy, cz = self.corner_bits  # (8,) each: corner c has bits (cx, cy, cz)
+        n_dense = min(self.n_dense, L)
+        parts = []
+        if n_dense:
+            b = base[:, :n_dense]
+            stride = (self.resolutions[:n_dense].to(torch.int32) + 1)[None, :]
+            lin = b[..., 0] + b[..., 1] * stride + b[..., 2] * stride * stride  # (N, Ld)
+            parts.append(lin[..., None] + self.dense_corner_offsets[:n_dense][None])
+        if L > n_dense:
+            b = base[:, n_dense:]
+            hx = torch.stack([b[..., 0], b[..., 0] + 1], -1)
+            hy = torch.stack([b[..., 1], b[..., 1] + 1], -1) * _PRIME_Y
+            hz = torch.stack([b[..., 2], b[..., 2] + 1], -1) * _PRIME_Z
+            h = hx.index_select(2, cx) ^ hy.index_select(2, cy) ^ hz.index_select(2, cz)  # (N, Lh, 8)
+            parts.append(h & self.hash_masks[n_dense:L][None, :, None])
+        idx = parts[0] if len(parts) == 1 else torch.cat(parts, dim=1)
+        idx = (idx + self.offsets32[:L][None, :, None]).long()  # int64: index ops are much faster
+        return idx, frac, inside
 
     def _pad(self, out: torch.Tensor) -> torch.Tensor:
         n, L = out.shape[0], self.active_levels
@@ -106,18 +132,18 @@ class HashGridEncoding(nn.Module):
     def _forward_autograd(self, x: torch.Tensor) -> torch.Tensor:
         n, L = x.shape[0], self.active_levels
         idx, frac, _ = self._lookup(x)
-        w_axis = torch.stack([1.0 - frac, frac], dim=-1)  # (N, L, 3, 2)
-        w = w_axis[:, :, 0, :, None, None] * w_axis[:, :, 1, None, :, None] * w_axis[:, :, 2, None, None, :]
+        _, w = _corner_weights(frac, self.corner_bits)
         # index_select, not table[idx]: its backward is an index_add, several times faster on CPU.
         feats = self.table.index_select(0, idx.reshape(-1)).reshape(n, L, 8, self.features_per_level)
         return self._pad(torch.einsum("nlc,nlcf->nlf", w.reshape(n, L, 8), feats))
 
 
-def _corner_weights(frac: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+def _corner_weights(frac: torch.Tensor, corner_bits: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     """Per-axis weights (N, L, 3, 2) and trilinear corner weights (N, L, 8), x bit slowest."""
     w_axis = torch.stack([1.0 - frac, frac], dim=-1)
-    w = w_axis[:, :, 0, :, None, None] * w_axis[:, :, 1, None, :, None] * w_axis[:, :, 2, None, None, :]
-    return w_axis, w.reshape(*frac.shape[:2], 8)
+    cx, cy, cz = corner_bits
+    w = w_axis[:, :, 0].index_select(2, cx) * w_axis[:, :, 1].index_select(2, cy) * w_axis[:, :, 2].index_select(2, cz)
+    return w_axis, w
 
 
 class _HashInterp(torch.autograd.Function):
@@ -128,7 +154,7 @@ class _HashInterp(torch.autograd.Function):
         n, L, F = x.shape[0], enc.active_levels, enc.features_per_level
         with torch.no_grad():
             idx, frac, inside = enc._lookup(x)
-            w_axis, w = _corner_weights(frac)
+            w_axis, w = _corner_weights(frac, enc.corner_bits)
             feats = table.index_select(0, idx.reshape(-1)).reshape(n, L, 8, F)
             out = torch.einsum("nlc,nlcf->nlf", w, feats)
         ctx.save_for_backward(idx, w_axis, w, feats, inside)
@@ -146,8 +172,11 @@ class _HashInterp(torch.autograd.Function):
         grad_x = grad_table = None
         if ctx.needs_input_grad[1]:
             contrib = (w[..., None] * g[:, :, None, :]).reshape(-1, F)
-            grad_table = torch.zeros(ctx.table_shape, dtype=g.dtype, device=g.device)
-            grad_table.index_add_(0, idx.reshape(-1), contrib)
+            flat = idx.reshape(-1)
+            # bincount per feature is a few times faster than index_add_ on CPU.
+            grad_table = torch.stack(
+                [torch.bincount(flat, contrib[:, k], minlength=ctx.table_shape[0]) for k in range(F)], dim=-1
+            ).to(g.dtype)
         if ctx.needs_input_grad[0]:
             gf = torch.einsum("nlf,nlcf->nlc", g, feats).reshape(n, L, 2, 2, 2)  # d out / d w_c
             wx, wy, wz = w_axis[:, :, 0], w_axis[:, :, 1], w_axis[:, :, 2]  # (N, L, 2)
