@@ -70,8 +70,10 @@ class SemanticConfig:
 
 @dataclass
 class RenderConfig:
-    mesh_resolution: int = 256
-    chunk: int = 131072
+    mesh_resolution: int = 256  # marching-cubes grid over the unit cube
+    subdivide: int = 1  # midpoint subdivisions of the mesh before ray casting (4x faces each)
+    per_pixel: bool = False  # evaluate the head at every pixel's hit (slow) instead of at vertices
+    chunk: int = 65536
 
 
 @dataclass

@@ -43,6 +43,8 @@ class SemanticField:
     baked: "BakedRays | None" = field(default=None, repr=False)  # semantic training rays, for refits
     _mesh: trimesh.Trimesh | None = field(default=None, repr=False)
     _caster: SurfaceCaster | None = field(default=None, repr=False)
+    _render_caster: SurfaceCaster | None = field(default=None, repr=False)
+    _vertex_logits: tuple | None = field(default=None, repr=False)  # (head id, logits)
 
     # --- surface --------------------------------------------------------------------------
     def mesh(self) -> trimesh.Trimesh:
@@ -56,6 +58,22 @@ class SemanticField:
         if self._caster is None:
             self._caster = SurfaceCaster(self.mesh())
         return self._caster
+
+    def render_caster(self) -> SurfaceCaster:
+        """The surface subdivided ``render.subdivide`` times, so vertices lie ~1-2 px apart."""
+        if self._render_caster is None:
+            mesh = self.mesh()
+            for _ in range(self.recipe.render.subdivide if len(mesh.faces) else 0):
+                mesh = mesh.subdivide()
+            self._render_caster = SurfaceCaster(mesh)
+        return self._render_caster
+
+    def vertex_logits(self) -> torch.Tensor:
+        """Class logits at the render mesh's vertices, for the current head (cached)."""
+        if self._vertex_logits is None or self._vertex_logits[0] is not self.head:
+            verts = np.asarray(self.render_caster().mesh.vertices, dtype=np.float32)
+            self._vertex_logits = (self.head, self.logits_at(verts))
+        return self._vertex_logits[1]
 
     # --- semantics ------------------------------------------------------------------------
     @torch.no_grad()
@@ -77,12 +95,22 @@ class SemanticField:
     def render(self, camera_unit: Camera, keep_probabilities: bool = False, keep_points: bool = False) -> FrameRender:
         """Mask and confidence for every pixel of a camera given in unit-cube coordinates."""
         h, w = camera_unit.height, camera_unit.width
-        hit, points, _ = self.caster().cast_camera(camera_unit)
+        caster = self.render_caster()
+        hit, points, faces = caster.cast_camera(camera_unit)
         c = self.classes.num_classes
         probs = np.zeros((h * w, c), dtype=np.float32)
         probs[:, self.classes.background_index] = 1.0
         if hit.any():
-            probs[hit] = torch.softmax(self.logits_at(points[hit]), dim=-1).cpu().numpy()
+            if self.recipe.render.per_pixel:
+                logits = self.logits_at(points[hit])
+            else:
+                # Logits at the hit = barycentric blend of the logits at the triangle's vertices:
+                # one head evaluation per vertex instead of one per pixel of every frame.
+                tri = np.asarray(caster.mesh.faces)[faces[hit]]
+                bary = trimesh.triangles.points_to_barycentric(np.asarray(caster.mesh.triangles)[faces[hit]], points[hit])
+                vl = self.vertex_logits()
+                logits = (vl[torch.from_numpy(tri).to(vl.device)] * torch.from_numpy(bary).to(vl)[..., None]).sum(1)
+            probs[hit] = torch.softmax(logits, dim=-1).cpu().numpy()
         index = probs.argmax(-1)
         mask = self.classes.index_to_id_lut()[index].reshape(h, w)
         conf = probs.max(-1).reshape(h, w)
