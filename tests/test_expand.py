@@ -21,6 +21,9 @@ from labelsynth.field.training import LabelledFrame
 from labelsynth.metrics import score_frames
 from labelsynth.pipeline import expand, fit_semantics
 
+# All tests using the shared tiny run go to one xdist worker, so it is fitted once.
+pytestmark = pytest.mark.xdist_group("tiny_expanded")
+
 TWO_CLASSES = ClassMap((ClassInfo(0, "background", (0, 0, 0)), ClassInfo(1, "wound", (255, 0, 0), True)))
 
 

@@ -336,6 +336,7 @@ def test_rebuild_report_and_cli(tmp_path, monkeypatch):
 
 
 # ------------------------------------------------------------------------------------------
+@pytest.mark.xdist_group("tiny_expanded")
 def test_real_field_flags_a_shifted_annotation(tiny_expanded):
     """End to end on a synthetic wound: one of four annotations shifted -> flagged, others not."""
     out = tiny_expanded.out
