@@ -23,7 +23,7 @@ RECIPE_DIR = Path(__file__).resolve().parent.parent / "recipes"
 class GeometryConfig:
     """Stage 1: fit the SDF and colour to the images."""
 
-    iterations: int = 1500
+    iterations: int = 1200
     train_scale: float = 0.25  # rays come from images resized by this factor
     target_samples: int = 32768  # samples per batch: the ray count adapts to hit it
     max_rays: int = 4096
