@@ -17,8 +17,8 @@ from ..errors import CaptureError
 IMAGE_EXTENSIONS: tuple[str, ...] = (".png", ".jpg", ".jpeg", ".PNG", ".JPG", ".JPEG")
 
 
-def image_size(path: str | Path) -> tuple[int, int]:
-    """(width, height) of an image from its header only (cheap: no pixel decoding)."""
+def header_size(path: str | Path, what: str = "image") -> tuple[int, int]:
+    """(width, height) of an image or mask file from its header only (no pixel decoding)."""
     from PIL import Image
 
     path = Path(path)
@@ -26,7 +26,12 @@ def image_size(path: str | Path) -> tuple[int, int]:
         with Image.open(path) as im:
             return int(im.size[0]), int(im.size[1])
     except (OSError, ValueError) as exc:
-        raise CaptureError(f"{path}: cannot read image ({exc})") from exc
+        raise CaptureError(f"{path}: cannot read {what} ({exc})") from exc
+
+
+def image_size(path: str | Path) -> tuple[int, int]:
+    """(width, height) of an image from its header only (cheap: no pixel decoding)."""
+    return header_size(path, "image")
 
 
 def _to_uint8(img: np.ndarray, path: Path) -> np.ndarray:

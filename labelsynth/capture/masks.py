@@ -92,14 +92,9 @@ def read_labelmap(path: str | Path, classes: ClassMap) -> ColorTable:
 # --- reading ------------------------------------------------------------------------------
 def mask_size(path: str | Path) -> tuple[int, int]:
     """(width, height) from the PNG header, without decoding pixels."""
-    from PIL import Image
+    from .images import header_size
 
-    path = Path(path)
-    try:
-        with Image.open(path) as im:
-            return int(im.size[0]), int(im.size[1])
-    except (OSError, ValueError) as exc:
-        raise CaptureError(f"{path}: cannot read mask ({exc})") from exc
+    return header_size(path, "mask")
 
 
 def read_mask(

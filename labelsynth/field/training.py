@@ -13,7 +13,8 @@ import torch
 from torch.nn import functional as F
 
 from ..cameras import Camera
-from ..classes import IGNORE_ID, ClassMap
+from ..classes import ClassMap
+from ..errors import LabelsynthError
 from ..progress import make_progress
 from .config import GeometryConfig, SemanticConfig
 from .encoding import HashGridEncoding
@@ -38,12 +39,8 @@ def pick_device(name: str = "auto") -> torch.device:
     if name == "auto":
         return torch.device("cuda" if torch.cuda.is_available() else "cpu")
     if name == "cuda" and not torch.cuda.is_available():
-        from ..errors import LabelsynthError
-
         raise LabelsynthError("--device cuda was asked for but torch sees no CUDA device")
     if name not in {"cpu", "cuda"}:
-        from ..errors import LabelsynthError
-
         raise LabelsynthError(f"unknown device '{name}' (use auto, cpu or cuda)")
     return torch.device(name)
 
@@ -343,8 +340,6 @@ def bake_semantic_rays(
             parts.append((pos, feat, w, labels, torch.full((n,), float(frame.weight), device=device),
                           torch.full((n,), fi, dtype=torch.long, device=device)))
     if not parts:
-        from ..errors import LabelsynthError
-
         raise LabelsynthError("no labelled pixels: every annotation/prediction mask is empty or ignore")
     cat = [torch.cat([p[i] for p in parts]) for i in range(6)]
     names = [f.name or str(i) for i, f in enumerate(frames)]
