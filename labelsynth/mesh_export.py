@@ -16,8 +16,10 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 import trimesh
+import torch
 
 from .classes import ClassMap
+from .field.semantic import decide_labels
 
 if TYPE_CHECKING:
     from .field.model import SemanticField
@@ -118,10 +120,12 @@ def class_areas(
 
 
 def vertex_class_ids(sem: "SemanticField", vertices_unit: np.ndarray) -> np.ndarray:
-    """Class id per vertex from the semantic head at the surface (unit-cube coordinates)."""
+    """Class id per vertex from the semantic head at the surface (unit-cube coordinates),
+    decided by the same rule as the rendered masks."""
     if len(vertices_unit) == 0:
         return np.zeros(0, dtype=np.uint8)
-    index = sem.logits_at(vertices_unit).argmax(-1).cpu().numpy()
+    probs = torch.softmax(sem.logits_at(vertices_unit), dim=-1).cpu().numpy()
+    index = decide_labels(probs, sem.classes, sem.recipe.render.decision)
     return sem.classes.index_to_id_lut()[index]
 
 

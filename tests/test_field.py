@@ -14,7 +14,7 @@ from labelsynth.errors import RecipeError
 from labelsynth.field.config import load_recipe
 from labelsynth.field.encoding import HashGridEncoding
 from labelsynth.field.rendering import OccupancyGrid, composite_weights, march, ray_box
-from labelsynth.field.semantic import class_weights, wound_bed_logits, wound_bed_probability
+from labelsynth.field.semantic import class_weights, decide_labels, wound_bed_logits, wound_bed_probability
 from labelsynth.field.training import LabelledFrame, bake_semantic_rays, weighted_cross_entropy
 
 
@@ -94,6 +94,44 @@ def test_class_weights_follow_the_paper():
     assert w[4] == pytest.approx(0.1 + 0.9 * 100 / 500)
 
 
+def test_class_weighting_schemes():
+    cm = ClassMap.default()
+    counts = np.array([1000, 300, 100, 0, 100, 0])
+    u = class_weights(counts, cm, scheme="uniform")
+    assert np.allclose(u, 1.0)
+    eq = class_weights(counts, cm, background_weight=0.2, scheme="equal-tissue")
+    assert eq.tolist() == pytest.approx([0.2, 1, 1, 1, 1, 1])
+    inv = class_weights(counts, cm, scheme="inverse")
+    # inverse frequency: every present class carries the same total weight; absent classes none
+    totals = inv * counts
+    assert np.allclose(totals[counts > 0], totals[0])
+    assert inv[3] == 0 and inv[5] == 0
+    assert (inv * counts).sum() == pytest.approx(counts.sum(), rel=1e-5)  # mean weight per pixel 1
+    sq = class_weights(counts, cm, scheme="inverse-sqrt")
+    assert sq[2] / sq[1] == pytest.approx(np.sqrt(3.0), rel=1e-5)
+    with pytest.raises(ValueError, match="unknown class weighting"):
+        class_weights(counts, cm, scheme="median")
+
+
+def test_wound_bed_first_decision():
+    cm = ClassMap.default()  # background, granulation, slough, necrotic, epithelial, unknown
+    probs = np.array([
+        [0.40, 0.35, 0.25, 0.0, 0.0, 0.0],  # bed 0.60 beats background: its likeliest tissue
+        [0.60, 0.30, 0.10, 0.0, 0.0, 0.0],  # background wins outright
+        [0.10, 0.20, 0.70, 0.0, 0.0, 0.0],  # plain tissue
+    ])
+    assert decide_labels(probs, cm, "argmax").tolist() == [0, 0, 2]
+    assert decide_labels(probs, cm, "wound-bed-first").tolist() == [1, 0, 2]
+    assert decide_labels(probs.reshape(3, 1, 6), cm).shape == (3, 1)
+    # a class that is neither background nor wound bed competes with the bed as a whole
+    other = ClassMap((ClassInfo(0, "background", (0, 0, 0)), ClassInfo(1, "a", (1, 1, 1), True),
+                      ClassInfo(2, "b", (2, 2, 2), True), ClassInfo(3, "ruler", (3, 3, 3))))
+    p2 = np.array([[0.1, 0.25, 0.2, 0.45], [0.1, 0.3, 0.3, 0.3]])
+    assert decide_labels(p2, other).tolist() == [3, 1]
+    with pytest.raises(ValueError, match="unknown decision rule"):
+        decide_labels(probs, cm, "vote")
+
+
 def test_wound_bed_is_log_sum_exp_of_tissue_logits():
     cm = ClassMap.default()
     logits = torch.tensor([[2.0, 0.5, 1.0, -1.0, 0.0, -3.0]])
@@ -165,3 +203,5 @@ def test_recipes_load_and_reject_typos():
         load_recipe("fast", ["geometry.iterations=many"])
     with pytest.raises(RecipeError, match="unknown recipe"):
         load_recipe("no-such-recipe")
+    with pytest.raises(RecipeError, match="class_weighting: 'balanced' is not one of"):
+        load_recipe("fast", ["semantic.class_weighting=balanced"])

@@ -15,6 +15,7 @@ import yaml
 
 from ..errors import RecipeError
 from .sdf import SDFConfig
+from .semantic import CLASS_WEIGHTINGS, DECISION_RULES
 
 RECIPE_DIR = Path(__file__).resolve().parent.parent / "recipes"
 
@@ -64,7 +65,9 @@ class SemanticConfig:
     max_rays_per_frame: int = 40000
     max_samples_per_ray: int = 8
     expert_weight: float = 4.0  # with --labels both: weight of annotated frames vs predictions
-    background_weight: float = 0.1
+    # paper | uniform | inverse-sqrt | inverse (field.semantic.class_weights says what each does)
+    class_weighting: str = "paper"
+    background_weight: float = 0.1  # these two: the paper scheme only
     tissue_weight_floor: float = 0.1  # w_y = floor + (1 - floor) * N_y / sum N (paper: 0.1 / 0.9)
 
 
@@ -72,6 +75,8 @@ class SemanticConfig:
 class RenderConfig:
     mesh_resolution: int = 256  # marching-cubes grid over the unit cube
     subdivide: int = 1  # midpoint subdivisions of the mesh before ray casting (4x faces each)
+    # wound-bed-first | argmax: how class probabilities become a label (semantic.decide_labels)
+    decision: str = "wound-bed-first"
     per_pixel: bool = False  # evaluate the head at every pixel's hit (slow) instead of at vertices
     chunk: int = 65536
 
@@ -151,4 +156,19 @@ def load_recipe(name_or_path: str | Path = "default", overrides: list[str] | Non
                 raise RecipeError(f"override '{item}': '{part}' is not a section")
         node[parts[-1]] = yaml.safe_load(raw)
     data.setdefault("name", path.stem)
-    return _build(Recipe, data, str(path.name))
+    recipe = _build(Recipe, data, str(path.name))
+    _check_choices(recipe, path.name)
+    return recipe
+
+
+def _check_choices(recipe: Recipe, where: str) -> None:
+    """Values that must be one of a few names: a typo is an error at load, not mid-run."""
+    if recipe.semantic.class_weighting not in CLASS_WEIGHTINGS:
+        raise RecipeError(
+            f"{where}.semantic.class_weighting: '{recipe.semantic.class_weighting}' is not one of "
+            f"{', '.join(CLASS_WEIGHTINGS)}"
+        )
+    if recipe.render.decision not in DECISION_RULES:
+        raise RecipeError(
+            f"{where}.render.decision: '{recipe.render.decision}' is not one of {', '.join(DECISION_RULES)}"
+        )

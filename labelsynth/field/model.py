@@ -16,7 +16,7 @@ from ..surface import SurfaceCaster, extract_mesh
 from .config import Recipe, _build
 from .rendering import OccupancyGrid
 from .sdf import SDFField
-from .semantic import SemanticHead
+from .semantic import SemanticHead, decide_labels
 from .training import BakedRays, make_semantic_head
 
 
@@ -111,9 +111,9 @@ class SemanticField:
                 vl = self.vertex_logits()
                 logits = (vl[torch.from_numpy(tri).to(vl.device)] * torch.from_numpy(bary).to(vl)[..., None]).sum(1)
             probs[hit] = torch.softmax(logits, dim=-1).cpu().numpy()
-        index = probs.argmax(-1)
+        index = decide_labels(probs, self.classes, self.recipe.render.decision)
         mask = self.classes.index_to_id_lut()[index].reshape(h, w)
-        conf = probs.max(-1).reshape(h, w)
+        conf = np.take_along_axis(probs, index[:, None], -1)[:, 0].reshape(h, w)  # of the label written
         return FrameRender(
             mask=mask,
             confidence=conf,

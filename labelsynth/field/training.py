@@ -391,7 +391,7 @@ def train_semantic(
     device = baked.positions.device
     torch.manual_seed(seed)
     gen = torch.Generator(device=device).manual_seed(seed + 1)
-    cw = class_weights(baked.class_counts, classes, cfg.background_weight, cfg.tissue_weight_floor)
+    cw = class_weights(baked.class_counts, classes, cfg.background_weight, cfg.tissue_weight_floor, cfg.class_weighting)
     class_w = torch.from_numpy(cw).to(device)
     opt = torch.optim.Adam(head.parameters(), lr=cfg.lr, betas=(0.9, 0.99), eps=1e-15)
     sched = torch.optim.lr_scheduler.CosineAnnealingLR(opt, T_max=max(cfg.iterations, 1), eta_min=cfg.lr * 0.05)
