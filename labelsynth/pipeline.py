@@ -100,15 +100,16 @@ def labelled_frames(
     for i, frame in enumerate(capture.frames):
         if frame.name in exclude:
             continue
-        mask, weight = None, 1.0
+        mask, weight, expert = None, 1.0, False
         if mode in ("annotations", "both"):
             mask = annotations.get(frame.name) if annotations is not None else capture.load_annotation(i)
             weight = recipe.semantic.expert_weight if mode == "both" else 1.0
+            expert = mask is not None
         if mask is None and mode in ("predictions", "both"):
             mask = predictions.get(frame.name) if predictions is not None else capture.load_prediction(i)
             weight = 1.0
         if mask is not None:
-            out.append(LabelledFrame(cams[i], mask, weight, frame.name))
+            out.append(LabelledFrame(cams[i], mask, weight, frame.name, expert))
     return out
 
 

@@ -15,7 +15,7 @@ from labelsynth.field.config import load_recipe
 from labelsynth.field.encoding import HashGridEncoding
 from labelsynth.field.rendering import OccupancyGrid, composite_weights, march, ray_box
 from labelsynth.field.semantic import class_weights, decide_labels, wound_bed_logits, wound_bed_probability
-from labelsynth.field.training import LabelledFrame, bake_semantic_rays, weighted_cross_entropy
+from labelsynth.field.training import LabelledFrame, bake_semantic_rays, resolve_class_weighting, weighted_cross_entropy
 
 
 def test_encoding_fast_path_matches_autograd_and_finite_differences():
@@ -189,6 +189,13 @@ def test_frames_without_labels_contribute_no_rays():
     assert torch.equal(baked.labels, baked2.labels)
     # the rays meet the plane: most of their weight lies on it
     assert float(baked.weights.sum(1).mean()) > 0.9
+    # class_weighting auto: expert-only labels -> equal-tissue, any prediction -> uniform
+    assert not baked.expert_only and resolve_class_weighting("auto", baked.expert_only) == "uniform"
+    experts = [LabelledFrame(f.camera, f.mask, 1.0, f"e{i}", expert=True) for i, f in enumerate(frames)]
+    baked_e = bake_semantic_rays(field, grid, experts, cm, cfg, steps=32, progress=False)
+    assert baked_e.expert_only and resolve_class_weighting("auto", baked_e.expert_only) == "equal-tissue"
+    assert baked_e.without({"e0"}).expert_only and len(baked_e.without({"e0"})) == 64
+    assert resolve_class_weighting("paper", True) == "paper"
 
 
 def test_recipes_load_and_reject_typos():

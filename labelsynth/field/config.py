@@ -65,8 +65,9 @@ class SemanticConfig:
     max_rays_per_frame: int = 40000
     max_samples_per_ray: int = 8
     expert_weight: float = 4.0  # with --labels both: weight of annotated frames vs predictions
-    # paper | uniform | inverse-sqrt | inverse (field.semantic.class_weights says what each does)
-    class_weighting: str = "paper"
+    # auto | paper | equal-tissue | uniform | inverse-sqrt | inverse (semantic.class_weights);
+    # auto = equal-tissue from expert annotations alone, uniform when predictions teach
+    class_weighting: str = "auto"
     background_weight: float = 0.1  # these two: the paper scheme only
     tissue_weight_floor: float = 0.1  # w_y = floor + (1 - floor) * N_y / sum N (paper: 0.1 / 0.9)
 

@@ -44,7 +44,8 @@ class SemanticHead(nn.Module):
         return self.out(self.dropout(self.body(h)))
 
 
-CLASS_WEIGHTINGS = ("paper", "equal-tissue", "uniform", "inverse-sqrt", "inverse")
+# "auto" is resolved per run by training.resolve_class_weighting (which labels are taught)
+CLASS_WEIGHTINGS = ("auto", "paper", "equal-tissue", "uniform", "inverse-sqrt", "inverse")
 
 
 def class_weights(
@@ -69,6 +70,8 @@ def class_weights(
     The scale is irrelevant: the loss is normalised by the summed weight.
     """
     counts = np.asarray(pixel_counts, dtype=np.float64)
+    if scheme == "auto":
+        raise ValueError("class weighting 'auto' is resolved by field.training.resolve_class_weighting first")
     if scheme not in CLASS_WEIGHTINGS:
         raise ValueError(f"unknown class weighting '{scheme}' (choose from {', '.join(CLASS_WEIGHTINGS)})")
     weights = np.zeros(classes.num_classes, dtype=np.float64)

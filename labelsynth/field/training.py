@@ -215,6 +215,7 @@ class LabelledFrame:
     mask: np.ndarray  # (H, W) uint8 class ids, 255 ignore
     weight: float = 1.0
     name: str = ""
+    expert: bool = False  # an expert annotation (exact) rather than an automatic prediction
 
 
 @dataclass
@@ -229,6 +230,12 @@ class BakedRays:
     frame_of_ray: torch.Tensor  # (R,) index into frame_names
     frame_names: list[str]
     frame_class_counts: np.ndarray  # (F, C) label pixels per frame and class index
+    frame_expert: list[bool] | None = None  # per frame: an expert annotation?
+
+    @property
+    def expert_only(self) -> bool:
+        """Every frame's labels are expert annotations (decides ``class_weighting: auto``)."""
+        return bool(self.frame_expert) and all(self.frame_expert)
 
     def __len__(self) -> int:
         return self.labels.shape[0]
@@ -248,6 +255,7 @@ class BakedRays:
             self.positions[keep], self.features[keep], self.weights[keep], self.labels[keep], self.ray_weight[keep],
             remap[self.frame_of_ray[keep]], [self.frame_names[i] for i in keep_frames],
             self.frame_class_counts[keep_frames],
+            None if self.frame_expert is None else [self.frame_expert[i] for i in keep_frames],
         )
 
 
@@ -343,7 +351,8 @@ def bake_semantic_rays(
         raise LabelsynthError("no labelled pixels: every annotation/prediction mask is empty or ignore")
     cat = [torch.cat([p[i] for p in parts]) for i in range(6)]
     names = [f.name or str(i) for i, f in enumerate(frames)]
-    return BakedRays(*cat, frame_names=names, frame_class_counts=frame_counts)
+    return BakedRays(*cat, frame_names=names, frame_class_counts=frame_counts,
+                     frame_expert=[bool(f.expert) for f in frames])
 
 
 def weighted_cross_entropy(
@@ -376,6 +385,20 @@ class SemanticStats:
     final_loss: float
     rays: int
     class_weights: list[float]
+    class_weighting: str
+
+
+def resolve_class_weighting(scheme: str, expert_only: bool) -> str:
+    """``auto``: ``equal-tissue`` when every label is an expert annotation, else ``uniform``.
+
+    Exact labels agree between views, so down-weighting background (the paper's 0.1) only
+    keeps small classes from being swallowed by it. Predictions disagree at every boundary;
+    there the same down-weighting grows the wound bed wherever a minority of views say so,
+    and an unweighted loss learns the per-point majority instead (README, Benchmarks).
+    """
+    if scheme != "auto":
+        return scheme
+    return "equal-tissue" if expert_only else "uniform"
 
 
 def train_semantic(
@@ -391,7 +414,8 @@ def train_semantic(
     device = baked.positions.device
     torch.manual_seed(seed)
     gen = torch.Generator(device=device).manual_seed(seed + 1)
-    cw = class_weights(baked.class_counts, classes, cfg.background_weight, cfg.tissue_weight_floor, cfg.class_weighting)
+    scheme = resolve_class_weighting(cfg.class_weighting, baked.expert_only)
+    cw = class_weights(baked.class_counts, classes, cfg.background_weight, cfg.tissue_weight_floor, scheme)
     class_w = torch.from_numpy(cw).to(device)
     opt = torch.optim.Adam(head.parameters(), lr=cfg.lr, betas=(0.9, 0.99), eps=1e-15)
     sched = torch.optim.lr_scheduler.CosineAnnealingLR(opt, T_max=max(cfg.iterations, 1), eta_min=cfg.lr * 0.05)
@@ -412,7 +436,7 @@ def train_semantic(
             loss_ema = loss.item() if it == 0 else 0.95 * loss_ema + 0.05 * loss.item()
             bar.update(task, advance=1, status=f"loss {loss_ema:.4f}")
     head.eval()
-    return SemanticStats(cfg.iterations, time.time() - t0, loss_ema, len(baked), cw.tolist())
+    return SemanticStats(cfg.iterations, time.time() - t0, loss_ema, len(baked), cw.tolist(), scheme)
 
 
 def rendered_logits(
