@@ -8,6 +8,7 @@ import trimesh
 
 from labelsynth.capture.model import SceneNormalization
 from labelsynth.classes import ClassMap
+from labelsynth.field.config import Recipe
 from labelsynth.mesh_export import class_areas, export_labelled_mesh, labelled_mesh
 
 CLASSES = ClassMap.default()
@@ -58,10 +59,11 @@ def test_round_trip_keeps_vertex_colours(tmp_path, ext):
 
 
 class _FakeField:
-    """Just what export_labelled_mesh uses: a unit-cube mesh, a head and a normalisation."""
+    """Just what export_labelled_mesh uses: a unit-cube mesh, a head, a normalisation, a recipe."""
 
     def __init__(self):
         self.classes = CLASSES
+        self.recipe = Recipe()
         self.normalization = SceneNormalization(center=np.array([5.0, 0.0, 0.0]), scale=2.0)
         self._mesh = trimesh.Trimesh(SQUARE_V * 0.5, SQUARE_F, process=False)
 
