@@ -15,8 +15,8 @@ from pathlib import Path
 from typing import TYPE_CHECKING
 
 import numpy as np
-import trimesh
 import torch
+import trimesh
 
 from .classes import ClassMap
 from .field.semantic import decide_labels

@@ -123,10 +123,9 @@ def decide_labels(probs: np.ndarray, classes: ClassMap, rule: str = "wound-bed-f
     if rule not in DECISION_RULES:
         raise ValueError(f"unknown decision rule '{rule}' (choose from {', '.join(DECISION_RULES)})")
     probs = np.asarray(probs)
-    best = probs.argmax(-1)
     bed = classes.wound_bed_indices
     if rule == "argmax" or len(bed) < 2:
-        return best
+        return probs.argmax(-1)
     bed_index = np.asarray(bed)
     bed_prob = probs[..., bed_index].sum(-1)
     other = np.setdiff1d(np.arange(probs.shape[-1]), bed_index)

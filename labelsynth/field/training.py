@@ -230,7 +230,7 @@ class BakedRays:
     frame_of_ray: torch.Tensor  # (R,) index into frame_names
     frame_names: list[str]
     frame_class_counts: np.ndarray  # (F, C) label pixels per frame and class index
-    frame_expert: list[bool] | None = None  # per frame: an expert annotation?
+    frame_expert: list[bool]  # per frame: an expert annotation?
 
     @property
     def expert_only(self) -> bool:
@@ -254,8 +254,7 @@ class BakedRays:
         return BakedRays(
             self.positions[keep], self.features[keep], self.weights[keep], self.labels[keep], self.ray_weight[keep],
             remap[self.frame_of_ray[keep]], [self.frame_names[i] for i in keep_frames],
-            self.frame_class_counts[keep_frames],
-            None if self.frame_expert is None else [self.frame_expert[i] for i in keep_frames],
+            self.frame_class_counts[keep_frames], [self.frame_expert[i] for i in keep_frames],
         )
 
 
