@@ -15,7 +15,14 @@ from labelsynth.field.config import load_recipe
 from labelsynth.field.encoding import HashGridEncoding
 from labelsynth.field.rendering import OccupancyGrid, composite_weights, march, ray_box
 from labelsynth.field.semantic import class_weights, decide_labels, wound_bed_logits, wound_bed_probability
-from labelsynth.field.training import LabelledFrame, bake_semantic_rays, resolve_class_weighting, weighted_cross_entropy
+from labelsynth.field.config import SemanticConfig
+from labelsynth.field.training import (
+    LabelledFrame,
+    bake_semantic_rays,
+    resolve_class_weighting,
+    semantic_iterations,
+    weighted_cross_entropy,
+)
 
 
 def test_encoding_fast_path_matches_autograd_and_finite_differences():
@@ -167,6 +174,16 @@ def _plane_frames(n: int, size: int = 8):
         mask[:, size // 2 :] = 1
         frames.append(LabelledFrame(cam, mask, 1.0))
     return frames
+
+
+def test_semantic_iterations_cover_the_labelled_rays():
+    cfg = SemanticConfig(iterations=400, rays_per_batch=2048, min_epochs=1.0)
+    assert semantic_iterations(cfg, 100_000) == 400  # few rays: the recipe's count stands
+    assert semantic_iterations(cfg, 2_000_000) == math.ceil(2_000_000 / 2048)  # every ray once
+    assert semantic_iterations(SemanticConfig(iterations=10, rays_per_batch=2048, min_epochs=2.0), 4096) == 10
+    assert semantic_iterations(SemanticConfig(iterations=1, rays_per_batch=2048, min_epochs=2.0), 4096) == 4
+    assert semantic_iterations(SemanticConfig(iterations=5, min_epochs=0.0), 10**7) == 5
+    assert semantic_iterations(SemanticConfig(iterations=1, rays_per_batch=4096), 100) == 1  # batch <= rays
 
 
 def test_frames_without_labels_contribute_no_rays():

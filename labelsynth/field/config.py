@@ -54,6 +54,10 @@ class SemanticConfig:
 
     iterations: int = 800
     rays_per_batch: int = 4096
+    # ...but at least this many passes over the labelled rays: with every frame's predictions
+    # teaching there are millions of rays, and a head that has seen only part of them can miss
+    # a small class outright (README, Benchmarks: necrotic learned or lost by the seed)
+    min_epochs: float = 1.0
     lr: float = 5e-3
     hidden: int = 64
     dropout: float = 0.5

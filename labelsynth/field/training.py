@@ -400,6 +400,12 @@ def resolve_class_weighting(scheme: str, expert_only: bool) -> str:
     return "equal-tissue" if expert_only else "uniform"
 
 
+def semantic_iterations(cfg: SemanticConfig, rays: int) -> int:
+    """``cfg.iterations``, raised so that the batches cover the labelled rays ``cfg.min_epochs`` times."""
+    batch = max(min(cfg.rays_per_batch, rays), 1)
+    return max(cfg.iterations, math.ceil(cfg.min_epochs * rays / batch))
+
+
 def train_semantic(
     head: SemanticHead,
     baked: BakedRays,
@@ -417,15 +423,17 @@ def train_semantic(
     cw = class_weights(baked.class_counts, classes, cfg.background_weight, cfg.tissue_weight_floor, scheme)
     class_w = torch.from_numpy(cw).to(device)
     opt = torch.optim.Adam(head.parameters(), lr=cfg.lr, betas=(0.9, 0.99), eps=1e-15)
-    sched = torch.optim.lr_scheduler.CosineAnnealingLR(opt, T_max=max(cfg.iterations, 1), eta_min=cfg.lr * 0.05)
+    batch = min(cfg.rays_per_batch, len(baked))
+    iterations = semantic_iterations(cfg, len(baked))
+    sched = torch.optim.lr_scheduler.CosineAnnealingLR(opt, T_max=max(iterations, 1), eta_min=cfg.lr * 0.05)
     bg_idx = classes.background_index
     head.train()
     loss_ema = 0.0
     t0 = time.time()
     with make_progress(progress) as bar:
-        task = bar.add_task("semantics", total=cfg.iterations, status="")
-        for it in range(cfg.iterations):
-            idx = torch.randint(0, len(baked), (min(cfg.rays_per_batch, len(baked)),), device=device, generator=gen)
+        task = bar.add_task("semantics", total=iterations, status="")
+        for it in range(iterations):
+            idx = torch.randint(0, len(baked), (batch,), device=device, generator=gen)
             logits = rendered_logits(head, baked.positions[idx], baked.features[idx], baked.weights[idx], bg_idx)
             loss = weighted_cross_entropy(logits, baked.labels[idx], class_w, baked.ray_weight[idx])
             opt.zero_grad(set_to_none=True)
@@ -435,7 +443,7 @@ def train_semantic(
             loss_ema = loss.item() if it == 0 else 0.95 * loss_ema + 0.05 * loss.item()
             bar.update(task, advance=1, status=f"loss {loss_ema:.4f}")
     head.eval()
-    return SemanticStats(cfg.iterations, time.time() - t0, loss_ema, len(baked), cw.tolist(), scheme)
+    return SemanticStats(iterations, time.time() - t0, loss_ema, len(baked), cw.tolist(), scheme)
 
 
 def rendered_logits(
