@@ -421,16 +421,24 @@ def bench_plot(result: dict, path: str | Path) -> None:
     axes = fig.subplots(1, 2, sharey=True)
     width = 0.8 / max(1, len(series))
     x = np.arange(len(perts))
+    values = {}
+    for metric in ("dice", "recall"):
+        for m, lab in series:
+            rs = [_find(rows, m, lab, p, WOUND_BED) for p in perts]
+            values[metric, m, lab] = np.array(
+                [np.nan if r is None or r[metric] is None else r[metric] for r in rs], dtype=float
+            )
+    # The methods differ by a few hundredths: an axis from 0 would hide that, so it starts
+    # 0.05 below the lowest bar (rounded down to 0.05) and every bar carries its value.
+    finite = np.concatenate([v[np.isfinite(v)] for v in values.values()] + [np.array([1.0])])
+    floor = max(0.0, np.floor((finite.min() - 0.05) * 20) / 20)
     for ax, metric, title in zip(axes, ("dice", "recall"), ("Wound bed Dice", "Wound bed recall")):
         for k, (m, lab) in enumerate(series):
-            vals = []
-            for p in perts:
-                r = _find(rows, m, lab, p, WOUND_BED)
-                vals.append(np.nan if r is None or r[metric] is None else r[metric])
-            ax.bar(x + (k - (len(series) - 1) / 2) * width, vals, width, label=_label(m, lab))
+            bars = ax.bar(x + (k - (len(series) - 1) / 2) * width, values[metric, m, lab], width, label=_label(m, lab))
+            ax.bar_label(bars, fmt="%.3f", rotation=90, padding=2, fontsize=7)
         ax.set_xticks(x, [PERTURBATION_NAMES[p] for p in perts], rotation=15)
-        ax.set_title(title)
-        ax.set_ylim(0, 1)
+        ax.set_title(title if floor == 0 else f"{title} (axis from {floor:.2f})")
+        ax.set_ylim(floor, 1.0 + 0.12 * (1.0 - floor))  # headroom for the value labels
         ax.grid(axis="y", alpha=0.3)
     axes[0].set_ylabel("score")
     fig.legend(*axes[0].get_legend_handles_labels(), loc="outside lower center", ncols=max(1, len(series)),
