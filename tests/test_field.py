@@ -11,11 +11,10 @@ import torch
 
 from labelsynth.classes import ClassInfo, ClassMap
 from labelsynth.errors import RecipeError
-from labelsynth.field.config import load_recipe
+from labelsynth.field.config import SemanticConfig, load_recipe
 from labelsynth.field.encoding import HashGridEncoding
 from labelsynth.field.rendering import OccupancyGrid, composite_weights, march, ray_box
 from labelsynth.field.semantic import class_weights, decide_labels, wound_bed_logits, wound_bed_probability
-from labelsynth.field.config import SemanticConfig
 from labelsynth.field.training import (
     LabelledFrame,
     bake_semantic_rays,
