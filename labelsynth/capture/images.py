@@ -58,7 +58,8 @@ def read_image(
     path = Path(path)
     img = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
     if img is None:
-        raise CaptureError(f"{path}: cannot read image (missing, empty or not an image)")
+        raise CaptureError(f"{path}: cannot read image ({_unreadable_reason(path)})")
+    check_complete(path)
     img = _to_uint8(img, path)
     if img.ndim == 2:
         rgb = np.repeat(img[:, :, None], 3, axis=2)
@@ -77,6 +78,53 @@ def read_image(
                 f"{path}: image is {rgb.shape[1]}x{rgb.shape[0]} but its camera expects {w}x{h}"
             )
     return np.ascontiguousarray(rgb)
+
+
+def check_complete(path: str | Path) -> None:
+    """Raise a ``CaptureError`` if a JPEG stops before its end marker.
+
+    OpenCV decodes a truncated JPEG without an error (the missing rows come out grey), so a
+    half-copied frame would silently teach the geometry. The test reads the file's last bytes;
+    only a file that does not end with the marker (truncated, or with data appended after it,
+    as phone "motion photos" do) is decoded once more by PIL, which tells the two apart.
+    PNGs need nothing here: OpenCV refuses a truncated PNG.
+    """
+    from PIL import Image
+
+    path = Path(path)
+    if path.suffix.lower() not in (".jpg", ".jpeg"):
+        return
+    with open(path, "rb") as fh:
+        fh.seek(0, 2)
+        fh.seek(max(0, fh.tell() - 64))
+        tail = fh.read()
+    if tail.rstrip(b"\x00\r\n\t ").endswith(b"\xff\xd9"):
+        return
+    try:
+        with Image.open(path) as im:
+            im.load()
+    except (OSError, ValueError, SyntaxError) as exc:
+        raise CaptureError(f"{path}: image file is truncated or damaged ({exc})") from exc
+
+
+def _unreadable_reason(path: Path) -> str:
+    """Why OpenCV returned nothing, in words a user can act on."""
+    from PIL import Image
+
+    if not path.is_file():
+        return "file not found"
+    if path.stat().st_size == 0:
+        return "empty file"
+    try:
+        with Image.open(path) as im:
+            im.load()
+    except OSError as exc:
+        if "truncated" in str(exc):
+            return "file is truncated"
+        return "not an image OpenCV can read"
+    except (ValueError, SyntaxError):
+        return "not an image OpenCV can read"
+    return "OpenCV cannot decode it"
 
 
 def composite_alpha(rgba: np.ndarray, white_background: bool) -> np.ndarray:
