@@ -15,3 +15,14 @@ class ClassMapError(CaptureError):
 
 class RecipeError(LabelsynthError, ValueError):
     """A recipe that does not exist or has unknown or ill-typed keys."""
+
+
+class CheckError(CaptureError):
+    """Every bad input of a run found at once (``capture.check``), one line per file in
+    ``problems``, so that a user fixes them all before the next try rather than one per run."""
+
+    def __init__(self, problems: list[str], summary: str) -> None:
+        self.problems = list(problems)
+        self.summary = summary
+        text = self.problems[0] if len(self.problems) == 1 else "\n".join([summary, *self.problems])
+        super().__init__(text)

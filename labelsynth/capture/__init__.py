@@ -1,10 +1,12 @@
 """Capture folders in: frames, cameras, images, masks, classes and the region of interest.
 
-``load_capture`` is the entry point; ``read_image`` / ``read_mask`` / ``write_mask`` are the
-pixel readers and writer shared with the outputs. Nothing here ever writes into a capture.
+``load_capture`` is the entry point; ``check_capture`` decodes every input a run will read
+before it trains; ``read_image`` / ``read_mask`` / ``write_mask`` are the pixel readers and
+writer shared with the outputs. Nothing here ever writes into a capture.
 """
 
-from ..errors import CaptureError
+from ..errors import CaptureError, CheckError
+from .check import CheckReport, ExtraMask, check_capture
 from .images import read_image
 from .load import load_capture, validate_capture
 from .masks import read_mask, write_mask
@@ -14,8 +16,12 @@ from .normalize import region_of_interest
 __all__ = [
     "Capture",
     "CaptureError",
+    "CheckError",
+    "CheckReport",
+    "ExtraMask",
     "Frame",
     "SceneNormalization",
+    "check_capture",
     "load_capture",
     "read_image",
     "read_mask",

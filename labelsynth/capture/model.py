@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import os
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -72,6 +73,10 @@ class Capture:
     color_table: dict[tuple[int, int, int], int] | None = None
     white_background: bool = False  # RGBA images are composited on white (Blender scenes) or black
     source: str = "transforms.json"
+    # Masks decoded by ``capture.check.check_capture``, by path: the training stages take them
+    # from here instead of decoding every file a second time. Images are never kept (too big).
+    mask_cache: dict[Path, tuple[tuple[int, int], np.ndarray]] = field(default_factory=dict, repr=False, compare=False)
+    mask_cache_limit: int = field(default=512 * 2**20, repr=False, compare=False)  # bytes
 
     def __len__(self) -> int:
         return len(self.frames)
@@ -103,19 +108,50 @@ class Capture:
 
     def load_annotation(self, index: int) -> np.ndarray | None:
         """(H,W) uint8 class ids of the expert mask, 255 = ignore; None if not annotated."""
-        from .masks import read_mask
-
         f = self.frames[index]
-        return None if f.annotation_path is None else read_mask(f.annotation_path, f.size, self.classes, self.color_table)
+        return None if f.annotation_path is None else self.read_mask_file(f.annotation_path, f.size)
 
     def load_prediction(self, index: int) -> np.ndarray | None:
         """(H,W) uint8 class ids of the automatic mask; None if there is none."""
-        from .masks import read_mask
-
         f = self.frames[index]
-        return None if f.prediction_path is None else read_mask(f.prediction_path, f.size, self.classes, self.color_table)
+        return None if f.prediction_path is None else self.read_mask_file(f.prediction_path, f.size)
+
+    def read_mask_file(self, path: str | Path, size: tuple[int, int] | None) -> np.ndarray:
+        """A mask with this capture's classes and colours: from the cache when the check has
+        decoded it already and the file has not changed since, else from the file (a copy
+        either way, so callers may modify it)."""
+        from . import masks  # the module, not the function: tests patch masks.read_mask
+
+        path = Path(path)
+        hit = self.mask_cache.get(path)
+        if hit is not None:
+            stamp, mask = hit
+            if file_stamp(path) == stamp and (size is None or mask.shape == (int(size[1]), int(size[0]))):
+                return mask.copy()
+        return masks.read_mask(path, size, self.classes, self.color_table)
+
+    def cache_mask(self, path: str | Path, mask: np.ndarray, stamp: tuple[int, int] | None = None) -> bool:
+        """Keep a decoded mask for ``read_mask_file`` while the cache stays under
+        ``mask_cache_limit`` bytes; returns whether it was kept. ``stamp`` = the file's
+        (mtime_ns, size) when it was read (taken now if not given)."""
+        path = Path(path)
+        stamp = stamp if stamp is not None else file_stamp(path)
+        used = sum(m.nbytes for p, (_, m) in self.mask_cache.items() if p != path)
+        if stamp is None or used + mask.nbytes > self.mask_cache_limit:
+            return False
+        self.mask_cache[path] = (stamp, mask)
+        return True
 
     def unit_cameras(self) -> list[Camera]:
         """Cameras in the normalised unit-cube coordinates the field uses."""
         assert self.normalization is not None
         return [self.normalization.camera_to_unit(f.camera) for f in self.frames]
+
+
+def file_stamp(path: Path) -> tuple[int, int] | None:
+    """(mtime_ns, size) of a file, to notice one that changed after it was cached."""
+    try:
+        st = os.stat(path)
+    except OSError:
+        return None
+    return st.st_mtime_ns, st.st_size
