@@ -26,8 +26,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .capture import load_capture, read_mask
-from .capture.load import validate_capture
+from .capture import ExtraMask, check_capture, load_capture
 from .capture.model import Capture
 from .errors import LabelsynthError
 from .field.config import load_recipe
@@ -92,8 +91,7 @@ def load_truths(truth_dir: str | Path, capture: Capture, names: Sequence[str]) -
         raise LabelsynthError(f"{missing[0]}: truth mask missing{more}")
     out = {}
     for n in names:
-        f = capture.frame(n)
-        out[n] = read_mask(truth_dir / f"{n}.png", f.size, capture.classes, capture.color_table)
+        out[n] = capture.read_mask_file(truth_dir / f"{n}.png", capture.frame(n).size)  # cached by the check
     return out
 
 
@@ -135,7 +133,6 @@ def run_bench(
     """
     t_start = time.perf_counter()
     capture = load_capture(capture_dir)
-    validate_capture(capture)
     meths = normalise_methods(methods)
     perts = normalise_perturbations(perturbations)
     rec = load_recipe(recipe, overrides)
@@ -154,6 +151,15 @@ def run_bench(
                 f"{capture.root / 'predictions' / (lacking[0].name + '.png')}: missing; the 2D baseline needs a "
                 "prediction for every scored frame"
             )
+    needs_field = "field" in meths
+    needs_geometry = needs_field or ("3d2d" in meths and mesh is None)
+    if not Path(truth_dir).is_dir():
+        raise LabelsynthError(f"{truth_dir}: truth folder not found")
+    # Every file the bench reads, checked before any fit: images only when a geometry is fitted,
+    # annotations only for the annotation-trained field, the truth of every scored frame.
+    truth_masks = [ExtraMask(Path(truth_dir) / f"{n}.png", capture.frame(n).size, "truth") for n in scored]
+    check_capture(capture, labels="both" if needs_field else "predictions", images=needs_geometry,
+                  extra_masks=truth_masks).raise_if_problems()
     truths = load_truths(truth_dir, capture, scored)
     truth_list = [truths[n] for n in scored]
     preds = {f.name: capture.load_prediction(i) for i, f in enumerate(capture.frames) if f.prediction_path is not None}
@@ -172,8 +178,6 @@ def run_bench(
     log(f"{len(capture)} frames ({len(annotated)} annotated, {len(scored)} scored), methods={','.join(meths)}, "
         f"perturbations={','.join(perts)}, recipe={rec.name}, device={dev}")
 
-    needs_field = "field" in meths
-    needs_geometry = needs_field or ("3d2d" in meths and user_mesh is None)
     kept = half_frames(capture.names)
     sem = sem_half = None
     if needs_geometry:

@@ -9,7 +9,7 @@ from typing import Optional
 
 import typer
 
-from .errors import LabelsynthError
+from .errors import CheckError, LabelsynthError
 
 app = typer.Typer(
     add_completion=False,
@@ -25,12 +25,18 @@ def _fail(message: str) -> None:
 
 
 def friendly_errors(func):
-    """Turn the library's user-facing errors into one line on stderr and exit code 2."""
+    """Turn the library's user-facing errors into one line on stderr and exit code 2
+    (a failed input check: one line per bad file, then one summary line)."""
 
     @functools.wraps(func)
     def wrapper(*args, **kwargs):
         try:
             return func(*args, **kwargs)
+        except CheckError as exc:
+            lines = exc.problems if len(exc.problems) == 1 else [*exc.problems, exc.summary]
+            for line in lines[:-1]:
+                typer.echo(f"labelsynth: error: {line}", err=True)
+            _fail(lines[-1])
         except LabelsynthError as exc:
             _fail(str(exc).splitlines()[0] if str(exc) else type(exc).__name__)
         except FileNotFoundError as exc:

@@ -17,8 +17,7 @@ import torch
 import yaml
 
 from . import __version__
-from .capture import load_capture
-from .capture.load import validate_capture
+from .capture import check_capture, load_capture
 from .capture.model import Capture
 from .errors import LabelsynthError
 from .export import LabelsWriter, write_masks_png
@@ -190,11 +189,15 @@ def fit_semantics(
     return vars(stats)
 
 
+def _check_out(out: Path, force: bool) -> None:
+    out = Path(out)
+    if out.exists() and any(out.iterdir()) and not force:
+        raise LabelsynthError(f"{out}: output folder exists and is not empty (use --force to replace it)")
+
+
 def _prepare_out(out: Path, force: bool) -> Path:
     out = Path(out)
-    if out.exists() and any(out.iterdir()):
-        if not force:
-            raise LabelsynthError(f"{out}: output folder exists and is not empty (use --force to replace it)")
+    _check_out(out, force)
     partial = out.with_name(out.name + ".partial")
     if partial.exists():
         shutil.rmtree(partial)
@@ -254,18 +257,28 @@ def expand(
     mesh_format: str = "ply",
     mm_per_unit: float | None = None,
 ) -> ExpandResult:
-    """Fit the semantic field to a capture and write OUT per DESIGN.md."""
+    """Fit the semantic field to a capture and write OUT per DESIGN.md.
+
+    Every input is checked first (``capture.check``): a bad file fails in seconds, with all
+    the others, before any training and before OUT or OUT.partial exist. The report reads
+    annotations and predictions whatever ``labels`` is, so only ``report=False`` narrows the
+    check to the masks that teach.
+    """
     capture = load_capture(capture_dir)
-    validate_capture(capture)
     mode = resolve_label_mode(capture, labels)
     rec = load_recipe(recipe, overrides)
-    dev = pick_device(device)
     out = Path(out)
+    _check_out(out, force)
+    check = check_capture(capture, labels="both" if report else mode)
+    check.raise_if_problems()
+    dev = pick_device(device)
     partial = _prepare_out(out, force)
     try:
         if progress:
+            console.print(f"[bold]labelsynth[/] {check.summary()}")
             console.print(f"[bold]labelsynth[/] {len(capture)} frames, labels={mode}, recipe={rec.name}, device={dev}")
         sem, stats = fit_field(capture, rec, mode, dev, seed=seed, progress=progress)
+        stats["seconds"] = {"check": check.seconds, **stats["seconds"]}
         sem.save(partial / FIELD_FILE)
         t0 = time.time()
         masks = render_outputs(sem, capture, partial, labels=mode, recipe_name=rec.name, progress=progress)

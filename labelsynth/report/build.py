@@ -237,7 +237,7 @@ def rebuild_report(
 
     Without ``mesh_format`` / ``mm_per_unit`` the previous report's choices are kept.
     """
-    from ..capture import load_capture
+    from ..capture import check_capture, load_capture
     from ..field.model import SemanticField
     from ..field.training import pick_device
 
@@ -265,6 +265,9 @@ def rebuild_report(
         mm_per_unit = (prev_mesh.get("areas") or {}).get("mm_per_unit")
     capture = load_capture(capture_dir)
     sem = SemanticField.load(field_path, pick_device(device))
+    # The report reads every mask and, for flagged frames, images: check them all before the
+    # leave-one-out refits, and that the capture's classes are still the field's.
+    check_capture(capture, labels="both", class_tables={str(field_path): sem.classes}).raise_if_problems()
     masks = read_field_masks(out_dir, capture.names)
     return build_report(out_dir, capture, sem, masks, mode, progress=progress, mesh_format=mesh_format,
                         mm_per_unit=mm_per_unit, loo=loo, seed=int(run.get("seed", 0)))
