@@ -106,13 +106,17 @@ def test_truncated_jpeg_is_caught(tmp_path) -> None:
     img.write_bytes(img.read_bytes()[:-40])
     cap = load_capture(root)
     rep = check_capture(cap)
-    assert len(rep.problems) == 1 and rep.problems[0].startswith(f"{img}: image file is truncated")
+    assert len(rep.problems) == 1 and rep.problems[0] == f"{img}: cannot read image (file is truncated)"
     with pytest.raises(CaptureError, match="truncated"):
         read_image(img)
-    # data appended after the end marker (phone "motion photos") is fine
+    # data appended after the end marker (phone "motion photos") is fine, in JPEG and PNG
     good = root / "images" / "frame_002.jpg"
     good.write_bytes(good.read_bytes() + b"\x00\x11trailer" * 10)
     assert read_image(good).shape == (H, W, 3)
+    png = tmp_path / "a.png"
+    cv2.imwrite(str(png), np.zeros((H, W, 3), np.uint8))
+    png.write_bytes(png.read_bytes() + b"trailer")
+    assert read_image(png).shape == (H, W, 3)
 
 
 def test_extra_masks_and_missing_files(tmp_path) -> None:

@@ -56,10 +56,10 @@ def read_image(
     the camera expects: a different size is an error, since intrinsics would not fit.
     """
     path = Path(path)
+    check_complete(path)
     img = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
     if img is None:
         raise CaptureError(f"{path}: cannot read image ({_unreadable_reason(path)})")
-    check_complete(path)
     img = _to_uint8(img, path)
     if img.ndim == 2:
         rgb = np.repeat(img[:, :, None], 3, axis=2)
@@ -80,31 +80,38 @@ def read_image(
     return np.ascontiguousarray(rgb)
 
 
-def check_complete(path: str | Path) -> None:
-    """Raise a ``CaptureError`` if a JPEG stops before its end marker.
+_END_MARKERS = {".png": b"IEND\xaeB`\x82", ".jpg": b"\xff\xd9", ".jpeg": b"\xff\xd9"}
 
-    OpenCV decodes a truncated JPEG without an error (the missing rows come out grey), so a
-    half-copied frame would silently teach the geometry. The test reads the file's last bytes;
-    only a file that does not end with the marker (truncated, or with data appended after it,
-    as phone "motion photos" do) is decoded once more by PIL, which tells the two apart.
-    PNGs need nothing here: OpenCV refuses a truncated PNG.
+
+def check_complete(path: str | Path) -> None:
+    """Raise a ``CaptureError`` if a PNG or JPEG stops before its end marker.
+
+    Run before OpenCV decodes: it reads a truncated JPEG without an error (the missing rows
+    come out grey, and the geometry would learn them), and for both formats it prints
+    libpng/libjpeg complaints on stderr among our own messages. Only the file's last bytes are
+    read; a file that does not end with its marker (truncated, or with data appended, as phone
+    "motion photos" do) is decoded once by PIL, which tells the two apart.
     """
     from PIL import Image
 
     path = Path(path)
-    if path.suffix.lower() not in (".jpg", ".jpeg"):
-        return
+    marker = _END_MARKERS.get(path.suffix.lower())
+    if marker is None or not path.is_file():
+        return  # other formats: OpenCV's word; a missing file: read_image says so
     with open(path, "rb") as fh:
         fh.seek(0, 2)
         fh.seek(max(0, fh.tell() - 64))
         tail = fh.read()
-    if tail.rstrip(b"\x00\r\n\t ").endswith(b"\xff\xd9"):
+    if tail.rstrip(b"\x00\r\n\t ").endswith(marker):
         return
     try:
         with Image.open(path) as im:
             im.load()
-    except (OSError, ValueError, SyntaxError) as exc:
-        raise CaptureError(f"{path}: image file is truncated or damaged ({exc})") from exc
+    except OSError as exc:
+        if "truncated" in str(exc):
+            raise CaptureError(f"{path}: cannot read image (file is truncated)") from exc
+    except (ValueError, SyntaxError):
+        pass  # not PIL's to judge: OpenCV decides below
 
 
 def _unreadable_reason(path: Path) -> str:
