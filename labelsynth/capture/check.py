@@ -114,7 +114,8 @@ def check_capture(
             if kind == "image":
                 _images.read_image(path, size, capture.white_background)
                 return None, None, None
-            return None, _masks.read_mask(path, size, capture.classes, capture.color_table), stamp
+            mask = _masks.read_mask(path, size, capture.classes, capture.color_table, kind=capture.mask_kind(path))
+            return None, mask, stamp
         except CaptureError as exc:
             return str(exc).splitlines()[0], None, None
         except Exception as exc:  # noqa: BLE001 - one odd file must not hide the others' problems

@@ -13,6 +13,13 @@ Formats read (see DESIGN.md, "Capture folder"):
   transparent pixels are ignore. A grey RGB image whose values are all class ids is read
   as ids (some tools save id masks as RGB).
 
+That is the ``classes`` kind, the default. A capture may say its masks in one folder are of
+another kind (``Capture.mask_kinds``), read through the same ``read_mask``:
+
+- ``binary``: object masks as NeuS / IDR ship them for DTU and BlendedMVS (3-channel or
+  single-channel, 0/255): a pixel with any colour channel above half range is the object
+  (id 1), every other pixel background (id 0).
+
 Masks are opened with PIL, not OpenCV: OpenCV silently turns palette PNGs into BGR and the
 indices are lost.
 """
@@ -32,6 +39,8 @@ ColorTable = dict[tuple[int, int, int], int]
 VOC_BOUNDARY_COLOR: tuple[int, int, int] = (224, 224, 192)
 IGNORE_COLOR: tuple[int, int, int] = (128, 128, 128)  # ClassMap.palette()/colorize() grey for 255
 MASK_EXTENSIONS: tuple[str, ...] = (".png", ".PNG")
+MASK_KINDS: tuple[str, ...] = ("classes", "binary")
+BINARY_OBJECT_ID = 1  # what a binary object mask's foreground becomes
 
 
 # --- colour tables ------------------------------------------------------------------------
@@ -102,16 +111,22 @@ def read_mask(
     size: tuple[int, int] | None,
     classes: ClassMap,
     color_table: ColorTable | None = None,
+    kind: str = "classes",
 ) -> np.ndarray:
     """Read a mask file as (H,W) uint8 class ids (255 = ignore).
 
     ``size`` = (width, height) of the frame; a mask of another size, unknown ids or
-    unknown colours raise a one-line ``CaptureError`` naming the file.
+    unknown colours raise a one-line ``CaptureError`` naming the file. ``kind`` says how the
+    pixels are coded (see the module docstring): ``classes`` or ``binary``.
     """
     from PIL import Image
 
     path = Path(path)
-    if color_table is None:
+    if kind not in MASK_KINDS:
+        raise ValueError(f"mask kind must be one of {', '.join(MASK_KINDS)}, not {kind!r}")
+    if kind == "binary" and BINARY_OBJECT_ID not in classes.ids:
+        raise CaptureError(f"{path}: a binary object mask needs class id {BINARY_OBJECT_ID} (object) in the class table")
+    if color_table is None and kind == "classes":
         color_table = color_table_for(classes)
     try:
         with Image.open(path) as im:
@@ -121,7 +136,9 @@ def read_mask(
                 raise CaptureError(
                     f"{path}: mask is {im.size[0]}x{im.size[1]} but its image is {int(size[0])}x{int(size[1])}"
                 )
-            if mode == "P":
+            if kind == "binary":
+                mask = _from_binary(im, path)
+            elif mode == "P":
                 indices = np.asarray(im, dtype=np.uint8)
                 palette = np.asarray(im.getpalette() or [], dtype=np.uint8).reshape(-1, 3)
                 mask = _from_palette(indices, palette, classes, color_table, path)
@@ -138,6 +155,22 @@ def read_mask(
     except (OSError, ValueError, SyntaxError) as exc:
         raise CaptureError(f"{path}: cannot read mask ({exc})") from exc
     return mask
+
+
+def _from_binary(im, path: Path) -> np.ndarray:
+    """Object (any colour channel above half range) -> 1, else 0; alpha is not a colour."""
+    mode = im.mode
+    if mode == "P":
+        im, mode = im.convert("RGB"), "RGB"
+    a = np.asarray(im)
+    if mode in ("RGB", "RGBA", "LA"):
+        a = a[:, :, :3] if mode != "LA" else a[:, :, :1]
+    elif mode not in ("L", "1", "I", "I;16", "I;16B", "I;16L"):
+        raise CaptureError(f"{path}: unsupported mask mode {mode!r} for a binary object mask")
+    if a.ndim == 2:
+        a = a[:, :, None]
+    half = 0 if mode == "1" else 127 if a.dtype == np.uint8 else 32767
+    return (a > half).any(axis=2).astype(np.uint8) * np.uint8(BINARY_OBJECT_ID)
 
 
 def _check_ids(ids: np.ndarray, classes: ClassMap, path: Path) -> np.ndarray:

@@ -19,7 +19,7 @@ class SceneNormalization:
 
     ``x_unit = (x_world - center) / scale``. The region of interest (ROI) is the cube of
     half-size ``scale`` around ``center``; see ``capture.normalize.region_of_interest``
-    for how it is chosen. Outputs (meshes, areas) are mapped back with ``to_world``.
+    for how it is chosen (a NeuS capture brings its own: its unit sphere, ``capture.neus``). Outputs (meshes, areas) are mapped back with ``to_world``.
     """
 
     center: np.ndarray  # (3,)
@@ -73,6 +73,9 @@ class Capture:
     color_table: dict[tuple[int, int, int], int] | None = None
     white_background: bool = False  # RGBA images are composited on white (Blender scenes) or black
     source: str = "transforms.json"
+    # Mask folder -> how its pixels are coded (``capture.masks`` kinds); folders not listed hold
+    # class-id / palette / colour masks ("classes"). A NeuS capture's mask/ is "binary".
+    mask_kinds: dict[Path, str] = field(default_factory=dict)
     # Masks decoded by ``capture.check.check_capture``, by path: the training stages take them
     # from here instead of decoding every file a second time. Images are never kept (too big).
     mask_cache: dict[Path, tuple[tuple[int, int], np.ndarray]] = field(default_factory=dict, repr=False, compare=False)
@@ -98,6 +101,10 @@ class Capture:
             if f.name == name:
                 return f
         raise KeyError(name)
+
+    def mask_kind(self, path: str | Path) -> str:
+        """How the mask file ``path`` is coded: its folder's kind, else "classes"."""
+        return self.mask_kinds.get(Path(path).parent, "classes")
 
     # Pixel loaders: implemented in capture.images / capture.masks, bound here for convenience.
     def load_image(self, index: int) -> np.ndarray:
@@ -128,7 +135,7 @@ class Capture:
             stamp, mask = hit
             if file_stamp(path) == stamp and (size is None or mask.shape == (int(size[1]), int(size[0]))):
                 return mask.copy()
-        return masks.read_mask(path, size, self.classes, self.color_table)
+        return masks.read_mask(path, size, self.classes, self.color_table, kind=self.mask_kind(path))
 
     def cache_mask(self, path: str | Path, mask: np.ndarray, stamp: tuple[int, int] | None = None) -> bool:
         """Keep a decoded mask for ``read_mask_file`` while the cache stays under
