@@ -2,7 +2,8 @@
 
 ``load_capture`` is the entry point; ``check_capture`` decodes every input a run will read
 before it trains; ``read_image`` / ``read_mask`` / ``write_mask`` are the pixel readers and
-writer shared with the outputs. Nothing here ever writes into a capture.
+writer shared with the outputs; ``select_frames`` reads the ``annotated_frames`` spec.
+Nothing here ever writes into a capture.
 """
 
 from ..errors import CaptureError, CheckError
@@ -12,6 +13,7 @@ from .load import load_capture, validate_capture
 from .masks import read_mask, write_mask
 from .model import Capture, Frame, SceneNormalization
 from .normalize import region_of_interest
+from .select import select_frames
 
 __all__ = [
     "Capture",
@@ -26,6 +28,7 @@ __all__ = [
     "read_image",
     "read_mask",
     "region_of_interest",
+    "select_frames",
     "validate_capture",
     "write_mask",
 ]

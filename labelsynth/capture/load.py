@@ -1,8 +1,17 @@
 """``load_capture``: a capture folder -> ``Capture`` (read-only; nothing is ever written there).
 
 Pose sources, first found wins: ``transforms.json``; ``transforms_train.json`` (the
-NeRF-synthetic layout, which has no plain ``transforms.json``); a COLMAP model in
-``sparse/0``. Without any, the error tells the user to run ``labelsynth poses CAPTURE``.
+NeRF-synthetic layout, which has no plain ``transforms.json``); ``cameras_sphere.npz`` (the
+NeuS / IDR layout of DTU and BlendedMVS, ``capture.neus``); a COLMAP model in ``sparse/0``.
+Without any, the error tells the user to run ``labelsynth poses CAPTURE``.
+
+Expert masks come from ``annotations/`` (by image stem) or, in a NeuS capture, from its
+``mask/`` (exact object masks, paired by sorted order). A NeuS capture with an
+``annotations/`` folder of masks learns from that folder alone: mask/ is ignored with a
+warning, since the user made annotations/ on purpose. ``annotated_frames``
+(``capture.select``) then keeps the annotations of the chosen frames only; the other frames
+count as unannotated everywhere (what teaches, ``labels.h5``'s ``annotated``, which frames a
+benchmark scores).
 """
 
 from __future__ import annotations
@@ -14,9 +23,11 @@ from ..classes import ClassMap
 from ..errors import CaptureError
 from .colmap import find_sparse_model, read_colmap
 from .images import image_size
-from .masks import MASK_EXTENSIONS, color_table_for, mask_size
+from .masks import BINARY_OBJECT_ID, MASK_EXTENSIONS, color_table_for, mask_size
 from .model import Capture, Frame
+from .neus import find_neus, read_neus
 from .normalize import region_of_interest
+from .select import FrameSpec, select_frames
 from .transforms import PosedFrames, read_transforms
 
 TRANSFORMS_NAMES = ("transforms.json", "transforms_train.json")
@@ -24,12 +35,16 @@ MASK_FOLDERS = ("annotations", "predictions")
 LOSSY_EXTENSIONS = (".jpg", ".jpeg")
 
 
-def load_capture(path: str | Path, *, classes: ClassMap | None = None) -> Capture:
+def load_capture(
+    path: str | Path, *, classes: ClassMap | None = None, annotated_frames: FrameSpec | None = None
+) -> Capture:
     """Read a capture folder: poses, frames, mask paths, classes, colour table, ROI.
 
-    Pixels are not read here (except one image header when ``w``/``h`` are missing); mask
+    Pixels are not read here (only image headers where the pose source lacks sizes); mask
     sizes are checked when a mask is read, or all at once by ``validate_capture``.
     Frames whose image is missing are skipped with one warning (with their masks).
+    ``annotated_frames``: which frames' annotations teach (``capture.select``: names,
+    indices, ``every:K``, ``spread:N``); the others' annotation paths are dropped. None: all.
     """
     root = Path(path)
     if not root.is_dir():
@@ -47,15 +62,29 @@ def load_capture(path: str | Path, *, classes: ClassMap | None = None) -> Captur
     _check_unique_names(posed.frames, root)
     posed.frames.sort(key=lambda f: f.name)  # deterministic, whatever order the file lists
 
+    classes_json = root / "classes.json"
     if classes is None:
-        classes_json = root / "classes.json"
-        classes = ClassMap.from_json(classes_json) if classes_json.is_file() else ClassMap.default()
+        classes = ClassMap.from_json(classes_json) if classes_json.is_file() else posed.classes or ClassMap.default()
     labelmap = root / "labelmap.txt"
     color_table = color_table_for(classes, labelmap if labelmap.is_file() else None)
 
+    found = {folder: _mask_files(root / folder) for folder in MASK_FOLDERS}
+    if posed.mask_kinds and found["annotations"]:
+        layout_masks = ", ".join(f"{p.name}/" for p in posed.mask_kinds)
+        warnings.warn(f"{root / 'annotations'}: these annotations teach; the {layout_masks} masks are ignored",
+                      stacklevel=2)
+        for f in posed.frames:
+            f.annotation_path = None
+        posed.mask_kinds = {}
+    if "binary" in posed.mask_kinds.values() and BINARY_OBJECT_ID not in classes.ids:
+        raise CaptureError(
+            f"{classes_json if classes_json.is_file() else root}: the object masks in "
+            f"{', '.join(str(p) for p in posed.mask_kinds)} are class id {BINARY_OBJECT_ID}, which the class table lacks"
+        )
+
     frames_by_name = {f.name: f for f in posed.frames}
     for folder in MASK_FOLDERS:
-        for name, mask_path in _mask_files(root / folder).items():
+        for name, mask_path in found[folder].items():
             frame = frames_by_name.get(name)
             if frame is None:
                 if name in posed.skipped:
@@ -63,17 +92,35 @@ def load_capture(path: str | Path, *, classes: ClassMap | None = None) -> Captur
                 raise CaptureError(f"{mask_path}: no frame named '{name}' (masks are named <image stem>.png)")
             setattr(frame, "annotation_path" if folder == "annotations" else "prediction_path", mask_path)
 
+    if annotated_frames is not None:
+        _keep_annotations(posed.frames, annotated_frames, root)
+
     cameras = [f.camera for f in posed.frames]
+    normalization = posed.normalization or region_of_interest(cameras, posed.points)
     return Capture(
         root=root,
         frames=posed.frames,
         classes=classes,
-        normalization=region_of_interest(cameras, posed.points),
+        normalization=normalization,
         points=posed.points,
         color_table=color_table,
         white_background=posed.white_background,
         source=posed.source,
+        mask_kinds=dict(posed.mask_kinds),
     )
+
+
+def _keep_annotations(frames: list[Frame], spec: FrameSpec, root: Path) -> None:
+    """Drop the annotation of every frame ``spec`` does not choose (frames sorted by name)."""
+    keep = set(select_frames(spec, [f.name for f in frames]))
+    bare = [f.name for f in frames if f.name in keep and f.annotation_path is None]
+    for f in frames:
+        if f.name not in keep:
+            f.annotation_path = None
+    if bare:
+        shown = ", ".join(bare[:5]) + (" ..." if len(bare) > 5 else "")
+        warnings.warn(f"{root}: {len(bare)} of the {len(keep)} frames chosen to teach have no annotation ({shown})",
+                      stacklevel=3)
 
 
 def validate_capture(capture: Capture) -> None:
@@ -100,11 +147,14 @@ def _read_poses(root: Path) -> PosedFrames:
     for name in TRANSFORMS_NAMES:
         if (root / name).is_file():
             return read_transforms(root / name)
+    npz = find_neus(root)
+    if npz is not None:
+        return read_neus(npz)
     model = find_sparse_model(root)
     if model is not None:
         return read_colmap(model, root / "images")
     raise CaptureError(
-        f"{root}: no camera poses (no transforms.json and no COLMAP sparse/0); "
+        f"{root}: no camera poses (no transforms.json, cameras_sphere.npz or COLMAP sparse/0); "
         f"run `labelsynth poses {root}` to estimate them"
     )
 

@@ -32,9 +32,10 @@ from typing import Any
 import numpy as np
 
 from ..cameras import Camera
+from ..classes import ClassMap
 from ..errors import CaptureError
 from .images import IMAGE_EXTENSIONS, find_image, image_size
-from .model import Frame
+from .model import Frame, SceneNormalization
 
 SUPPORTED_MODELS = {"OPENCV", "PINHOLE", "SIMPLE_PINHOLE"}
 INTRINSIC_KEYS = ("fl_x", "fl_y", "cx", "cy", "w", "h", "k1", "k2", "k3", "k4", "p1", "p2",
@@ -50,6 +51,11 @@ class PosedFrames:
     points: np.ndarray | None = None
     white_background: bool = False
     source: str = "transforms.json"
+    # What a layout fixes itself (NeuS): its unit sphere instead of a region of interest found
+    # from the cameras, its class table when there is no classes.json, its mask folders' kinds.
+    normalization: SceneNormalization | None = None
+    classes: ClassMap | None = None
+    mask_kinds: dict[Path, str] = field(default_factory=dict)
 
 
 def read_transforms(path: str | Path) -> PosedFrames:
