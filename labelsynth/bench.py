@@ -124,15 +124,17 @@ def run_bench(
     half_geometry: bool = True,
     cutoff_deg: float = DEFAULT_CUTOFF_DEG,
     stride: int = DEFAULT_STRIDE,
+    annotated_frames: str | list[str] | None = None,
 ) -> dict:
     """Score 2D, 3D/2D and the field under each perturbation; write OUT/bench.{json,md,png}.
 
     ``mesh``: a world-coordinate mesh file for 3D/2D instead of the fitted field's surface.
     ``half_geometry``: refit the geometry on the kept frames for half-frames (the paper's
-    setting) rather than reuse the all-frames geometry. Returns the bench.json content.
+    setting) rather than reuse the all-frames geometry. ``annotated_frames``: which frames'
+    annotations teach (``load_capture``); the others are scored. Returns the bench.json content.
     """
     t_start = time.perf_counter()
-    capture = load_capture(capture_dir)
+    capture = load_capture(capture_dir, annotated_frames=annotated_frames)
     meths = normalise_methods(methods)
     perts = normalise_perturbations(perturbations)
     rec = load_recipe(recipe, overrides)

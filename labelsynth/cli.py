@@ -88,7 +88,7 @@ def poses(
 @app.command()
 @friendly_errors
 def expand(
-    capture: Path = typer.Argument(..., help="Capture folder (transforms.json or sparse/0, images/, annotations/, predictions/)."),
+    capture: Path = typer.Argument(..., help="Capture folder (transforms.json, cameras_sphere.npz or sparse/0; images/, annotations/, predictions/)."),
     out: Path = typer.Option(..., "--out", help="Output folder (masks/, labels.h5, report.*)."),
     labels: Optional[str] = typer.Option(None, help="annotations | predictions | both (default: both when both exist)."),
     recipe: str = typer.Option("default", help="Recipe name (default, fast, quality, paper) or a YAML path."),
@@ -98,13 +98,17 @@ def expand(
     force: bool = typer.Option(False, help="Replace a finished OUT."),
     mesh_format: str = typer.Option("ply", "--mesh-format", help="ply | glb: OUT/mesh.ply is always written; glb adds OUT/mesh.glb."),
     mm_per_unit: Optional[float] = typer.Option(None, "--mm-per-unit", min=0.0, help="Millimetres per scene unit: class areas in mm² too."),
+    annotated_frames: Optional[str] = typer.Option(
+        None, "--annotated-frames",
+        help="Only these frames' annotations teach: names or 0-based indices (a,b,3), every:K or spread:N (default: all).",
+    ),
 ) -> None:
     """Fit a 3D semantic field to the capture and render consistent masks for every frame."""
     from .pipeline import expand as run_expand
 
     result = run_expand(
         capture, out, labels=labels, recipe=recipe, device=device, seed=seed, overrides=set_, force=force,
-        mesh_format=mesh_format, mm_per_unit=mm_per_unit,
+        mesh_format=mesh_format, mm_per_unit=mm_per_unit, annotated_frames=annotated_frames,
     )
     typer.echo(result.summary())
 
@@ -181,6 +185,10 @@ def bench(
     mesh: Optional[Path] = typer.Option(None, "--mesh", help="World-coordinate mesh for 3D/2D instead of the fitted surface."),
     half_geometry: bool = typer.Option(True, "--half-geometry/--shared-geometry", help="Half-frames: refit geometry on the kept frames, or reuse the all-frames geometry."),
     cutoff: float = typer.Option(75.0, "--cutoff", help="3D/2D: views more grazing than this angle (degrees) do not vote."),
+    annotated_frames: Optional[str] = typer.Option(
+        None, "--annotated-frames",
+        help="Only these frames' annotations teach: names or 0-based indices (a,b,3), every:K or spread:N (default: all).",
+    ),
 ) -> None:
     """Paper Tables 1 and 2: 2D, 3D/2D and the field under each perturbation, scored against --truth."""
     from .bench import bench_markdown, run_bench
@@ -188,6 +196,7 @@ def bench(
     result = run_bench(
         capture, truth, out, perturbations=perturb, methods=methods, recipe=recipe, device=device,
         overrides=set_, seed=seed, mesh=mesh, half_geometry=half_geometry, cutoff_deg=cutoff,
+        annotated_frames=annotated_frames,
     )
     typer.echo(bench_markdown(result))
     typer.echo(f"wrote {out / 'bench.json'}, {out / 'bench.md'}, {out / 'bench.png'}")

@@ -256,15 +256,17 @@ def expand(
     report: bool = True,
     mesh_format: str = "ply",
     mm_per_unit: float | None = None,
+    annotated_frames: str | list[str] | None = None,
 ) -> ExpandResult:
     """Fit the semantic field to a capture and write OUT per DESIGN.md.
 
     Every input is checked first (``capture.check``): a bad file fails in seconds, with all
     the others, before any training and before OUT or OUT.partial exist. The report reads
     annotations and predictions whatever ``labels`` is, so only ``report=False`` narrows the
-    check to the masks that teach.
+    check to the masks that teach. ``annotated_frames``: which frames' annotations teach
+    (``load_capture``); run.json records the chosen names so ``labelsynth report`` keeps them.
     """
-    capture = load_capture(capture_dir)
+    capture = load_capture(capture_dir, annotated_frames=annotated_frames)
     mode = resolve_label_mode(capture, labels)
     rec = load_recipe(recipe, overrides)
     out = Path(out)
@@ -298,6 +300,8 @@ def expand(
                     "version": __version__,
                     "capture": str(Path(capture_dir).resolve()),
                     "labels": mode,
+                    "annotated_frames": None if annotated_frames is None else [
+                        f.name for f in capture.frames if f.annotation_path is not None],
                     "recipe": rec.to_dict(),
                     "device": str(dev),
                     "seed": seed,

@@ -263,7 +263,7 @@ def rebuild_report(
         mesh_format = "glb" if had_glb else "ply"
     if mm_per_unit is None:
         mm_per_unit = (prev_mesh.get("areas") or {}).get("mm_per_unit")
-    capture = load_capture(capture_dir)
+    capture = load_capture(capture_dir, annotated_frames=run.get("annotated_frames"))  # as the run chose
     sem = SemanticField.load(field_path, pick_device(device))
     # The report reads every mask and, for flagged frames, images: check them all before the
     # leave-one-out refits, and that the capture's classes are still the field's.
