@@ -173,7 +173,14 @@ class _Scene:
         self.texel = 2 * self.half / self.tex_res
         self._layout(rng)
         self._textures(rng)
+        self._sampling_textures()
         self._mesh(rng)
+
+    def _sampling_textures(self) -> None:
+        """The arrays that rendering samples (here the textures themselves), and their shape."""
+        self.tex_shape = self.labels.shape
+        self._tex = {"labels": self.labels, "albedo": self.albedo, "spec": self.spec, "shin": self.shin,
+                     "bump_grad": self.bump_grad, "height_geo": self.height_geo, "global_albedo": self.global_albedo}
 
     # --- geometry -------------------------------------------------------------------------
     def surface(self, u: np.ndarray, v: np.ndarray, h: np.ndarray) -> np.ndarray:
@@ -192,11 +199,17 @@ class _Scene:
         y = (v + self.half) / self.texel - 0.5
         return x, y
 
+    def _global_xy(self, u: np.ndarray, v: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(u, v) -> continuous texel coordinates of the global skin texture (sampled as ``_tex``)."""
+        gh, gw = self.global_albedo.shape[:2]
+        return (u + self.u_half) / (2 * self.u_half) * gw - 0.5, (v + self.v_half) / (2 * self.v_half) * gh - 0.5
+
     def displacement(self, u: np.ndarray, v: np.ndarray) -> np.ndarray:
         x, y = self._tex_coords(u, v)
-        inside = (x >= 0) & (y >= 0) & (x <= self.tex_res - 1) & (y <= self.tex_res - 1)
+        rows, cols = self.tex_shape
+        inside = (x >= 0) & (y >= 0) & (x <= cols - 1) & (y <= rows - 1)
         h = np.zeros(u.shape, np.float64)
-        h[inside] = _bilinear(self.height_geo, x[inside], y[inside])
+        h[inside] = _bilinear(self._tex["height_geo"], x[inside], y[inside])
         return h
 
     def _mesh(self, rng: np.random.Generator) -> None:
@@ -210,6 +223,10 @@ class _Scene:
         P = self.surface(U, V, H)
         du = np.gradient(P, axis=0)
         dv = np.gradient(P, axis=1)
+        self._set_mesh(U, V, P, du, dv)
+
+    def _set_mesh(self, U: np.ndarray, V: np.ndarray, P: np.ndarray, du: np.ndarray, dv: np.ndarray) -> None:
+        """Triangulate a (nu, nv) grid of surface points P at (U, V) with tangents du, dv."""
         N = np.cross(du, dv)
         N /= np.linalg.norm(N, axis=-1, keepdims=True)
         self.vertices = P.reshape(-1, 3)
@@ -217,13 +234,14 @@ class _Scene:
         self.vertex_normals = N.reshape(-1, 3)
         self.vertex_tu = (du / np.linalg.norm(du, axis=-1, keepdims=True)).reshape(-1, 3)
         self.vertex_tv = (dv / np.linalg.norm(dv, axis=-1, keepdims=True)).reshape(-1, 3)
-        idx = np.arange(n * n).reshape(n, n)
+        nu, nv = U.shape
+        idx = np.arange(nu * nv).reshape(nu, nv)
         a00, a10, a01, a11 = idx[:-1, :-1], idx[1:, :-1], idx[:-1, 1:], idx[1:, 1:]
         faces = np.concatenate(
             [np.stack([a00, a10, a11], -1).reshape(-1, 3), np.stack([a00, a11, a01], -1).reshape(-1, 3)]
         )
         self.faces = faces.astype(np.int64)
-        self.grid_n = n
+        self.grid_n = nu
         self._attrs = np.concatenate([self.vertices, self.vertex_uv, self.vertex_normals, self.vertex_tu,
                                       self.vertex_tv], axis=1).astype(np.float32)
         self.center = self.surface(np.zeros(1), np.zeros(1), self.displacement(np.zeros(1), np.zeros(1)))[0]
@@ -286,50 +304,71 @@ class _Scene:
             rad += rng.uniform(0.0, 0.16 / k * 2) * np.cos(k * phi + rng.uniform(0, 2 * np.pi))
         rho = np.hypot(a, b) / (R * rad)
         self.rho = rho.astype(np.float32)
+        ang = np.arctan2(V, U)
+        self.labels = self._draw_tissues(
+            rng, U, V, rho, blobs=1,
+            noise=lambda mult: _noise(rng, (n, n), (cells * mult, cells * mult)),
+            fbm=lambda mult, octaves: _fbm(rng, (n, n), cells * mult, octaves=octaves),
+            dist=lambda cu, cv: np.hypot(U - cu, V - cv),
+            dist_to=lambda mask: cv2.distanceTransform((~mask).astype(np.uint8), cv2.DIST_L2, 5) * self.texel,
+            rim_on=lambda: sum(rng.uniform(0.3, 1.0) * np.cos(k * ang + rng.uniform(0, 2 * np.pi)) for k in (1, 2, 3)),
+        )  # rows along v, columns along u
+
+    def _draw_tissues(self, rng: np.random.Generator, U: np.ndarray, V: np.ndarray, rho: np.ndarray, *,
+                      blobs: int, noise, fbm, dist, dist_to, rim_on) -> np.ndarray:
+        """Tissue classes inside the bed ``rho < 1`` (rho: 0 in the middle, 1 on the outline).
+
+        The layout's geometry comes in as callbacks over the texture window: ``noise(mult)`` and
+        ``fbm(mult, octaves)`` (smooth noise with features about wound_radius / mult apart),
+        ``dist(cu, cv)`` (distance of every texel to a point), ``dist_to(mask)`` (distance to a
+        mask), ``rim_on()`` (a smooth field along the outline choosing where the rim is).
+        ``blobs`` is how many necrotic and unknown regions may be tried.
+        """
+        R = self.wound_radius
         bed = rho < 1.0
-        labels = np.zeros((n, n), np.uint8)
+        labels = np.zeros(bed.shape, np.uint8)
         labels[bed] = GRANULATION
         bed_area = max(1, int(bed.sum()))
 
         # epithelial rim: a band inside the edge over part of the perimeter, of varying width
-        ang = np.arctan2(V, U)
-        rim_on = sum(rng.uniform(0.3, 1.0) * np.cos(k * ang + rng.uniform(0, 2 * np.pi)) for k in (1, 2, 3))
-        rim_w = np.clip(0.10 + 0.05 * _noise(rng, (n, n), (cells, cells)), 0.05, 0.18)
-        rim = bed & (rho > 1.0 - rim_w) & (rim_on > np.quantile(rim_on[bed], rng.uniform(0.15, 0.4)))
+        on = rim_on()
+        rim_w = np.clip(0.10 + 0.05 * noise(1), 0.05, 0.18)
+        rim = bed & (rho > 1.0 - rim_w) & (on > np.quantile(on[bed], rng.uniform(0.15, 0.4)))
 
-        # necrotic: a small dark blob (absent for some seeds)
+        # necrotic: small dark blobs (absent for some seeds)
         inner = bed & (rho < 0.55)
         nec = np.zeros_like(bed)
-        if rng.random() < 0.75 and inner.any():
-            ys, xs = np.nonzero(inner)
-            k = rng.integers(len(ys))
-            cu, cv = U[ys[k], xs[k]], V[ys[k], xs[k]]
-            r_n = R * rng.uniform(0.17, 0.27)
-            d = np.hypot(U - cu, V - cv) / r_n + 0.35 * _noise(rng, (n, n), (cells * 3, cells * 3))
-            nec = bed & (d < 1.0)
-        # slough: noisy patches covering 15-30 % of the bed, denser around the necrotic blob
-        sl_field = _fbm(rng, (n, n), cells * 1.3, octaves=3)
+        for _ in range(blobs):
+            if rng.random() < 0.75 and inner.any():
+                ys, xs = np.nonzero(inner)
+                k = rng.integers(len(ys))
+                cu, cv = U[ys[k], xs[k]], V[ys[k], xs[k]]
+                r_n = R * rng.uniform(0.17, 0.27)
+                d = dist(cu, cv) / r_n + 0.35 * noise(3)
+                nec = nec | (bed & (d < 1.0))
+        # slough: noisy patches covering 15-30 % of the bed, denser around the necrotic blobs
+        sl_field = fbm(1.3, 3)
         if nec.any():
-            dist = cv2.distanceTransform((~nec).astype(np.uint8), cv2.DIST_L2, 5) * self.texel
-            sl_field = sl_field + 1.2 * np.exp(-dist / (0.25 * R))
+            sl_field = sl_field + 1.2 * np.exp(-dist_to(nec) / (0.25 * R))
         cand = bed & ~rim & ~nec
         target = rng.uniform(0.15, 0.30) * bed_area
         thr = np.quantile(sl_field[cand], 1 - min(0.95, target / max(1, cand.sum()))) if cand.any() else np.inf
         slough = cand & (sl_field > thr)
         # unknown: rare and small
         unk = np.zeros_like(bed)
-        if rng.random() < 0.35:
-            ys, xs = np.nonzero(bed & (rho > 0.4) & (rho < 0.85))
-            if len(ys):
-                k = rng.integers(len(ys))
-                cu, cv = U[ys[k], xs[k]], V[ys[k], xs[k]]
-                d = np.hypot(U - cu, V - cv) / (R * rng.uniform(0.08, 0.13)) + 0.3 * _noise(rng, (n, n), (cells * 4, cells * 4))
-                unk = bed & (d < 1.0)
+        for _ in range(blobs):
+            if rng.random() < 0.35:
+                ys, xs = np.nonzero(bed & (rho > 0.4) & (rho < 0.85))
+                if len(ys):
+                    k = rng.integers(len(ys))
+                    cu, cv = U[ys[k], xs[k]], V[ys[k], xs[k]]
+                    d = dist(cu, cv) / (R * rng.uniform(0.08, 0.13)) + 0.3 * noise(4)
+                    unk = unk | (bed & (d < 1.0))
         labels[slough] = SLOUGH
         labels[rim] = EPITHELIAL
         labels[nec] = NECROTIC
         labels[unk] = UNKNOWN
-        self.labels = labels  # rows along v, columns along u
+        return labels
 
     # --- textures -------------------------------------------------------------------------
     def _skin_tone(self, rng: np.random.Generator) -> np.ndarray:
@@ -381,10 +420,9 @@ class _Scene:
         img = img * (1 - canvas[..., None] * (1 - brown))
         return np.clip(img, 0, 255)
 
-    def _textures(self, rng: np.random.Generator) -> None:
-        n, R = self.tex_res, self.wound_radius
-        tone = self._skin_tone(rng)
-        self.skin_tone = tone
+    def _window_skin(self, rng: np.random.Generator, tone: np.ndarray) -> np.ndarray:
+        """Sets the global skin texture; returns the skin albedo over the texture window."""
+        n = self.tex_res
         # global skin over the whole (u, v) domain, about 2 mm texels
         gw = int(np.clip(2 * self.u_half / 0.0025, 256, 2400))
         gh = int(np.clip(2 * self.v_half / 0.0025, 256, 2400))
@@ -399,14 +437,36 @@ class _Scene:
         detail = self._skin(rng, (n, n), (2 * self.half, 2 * self.half), tone, fine=True) / np.maximum(tone, 1)
         edge = np.minimum(np.minimum(U + self.half, self.half - U), np.minimum(V + self.half, self.half - V))
         fade = _smoothstep(0.0, 0.25 * self.half, edge)[..., None]
-        skin = base * (1 - fade + fade * detail)
+        return base * (1 - fade + fade * detail)
 
-        cells = 2 * self.half / R
+    # smooth noise over the texture window, features about wound_radius / mult apart; a blur and
+    # a gradient (d/du, d/dv) over it: what a layout with a differently shaped window replaces
+    def _win_noise(self, rng: np.random.Generator, mult: float) -> np.ndarray:
+        cells = 2 * self.half / self.wound_radius
+        return _noise(rng, (self.tex_res, self.tex_res), (cells * mult, cells * mult))
+
+    def _win_fbm(self, rng: np.random.Generator, mult: float, octaves: int, aspect: float = 1.0) -> np.ndarray:
+        cells = 2 * self.half / self.wound_radius
+        return _fbm(rng, (self.tex_res, self.tex_res), cells * mult, octaves=octaves, aspect=aspect)
+
+    def _blur(self, img: np.ndarray, sigma: float) -> np.ndarray:
+        return cv2.GaussianBlur(img, (0, 0), sigma)
+
+    def _grad(self, img: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        gy, gx = np.gradient(img, self.texel)
+        return gx, gy
+
+    def _textures(self, rng: np.random.Generator) -> None:
+        R = self.wound_radius
+        tone = self._skin_tone(rng)
+        self.skin_tone = tone
+        skin = self._window_skin(rng, tone)
+
         lab = self.labels
-        bumps = _fbm(rng, (n, n), cells * 12, octaves=2)  # granulation cobbles ~ R/12
-        fine = _noise(rng, (n, n), (cells * 30, cells * 30))
-        mott = _fbm(rng, (n, n), cells * 3, octaves=3)
-        fib = _fbm(rng, (n, n), cells * 6, octaves=2, aspect=4.0)
+        bumps = self._win_fbm(rng, 12, octaves=2)  # granulation cobbles ~ R/12
+        fine = self._win_noise(rng, 30)
+        mott = self._win_fbm(rng, 3, octaves=3)
+        fib = self._win_fbm(rng, 6, octaves=2, aspect=4.0)
         alb = skin.copy()
         m = lab == GRANULATION
         gran = np.array([186, 44, 46], np.float32)
@@ -435,13 +495,13 @@ class _Scene:
         d = self.crater_depth
         crater = -d * (1 - _smoothstep(0.82, 1.08, self.rho))
         bed = (lab != BACKGROUND).astype(np.float32)
-        bed_s = cv2.GaussianBlur(bed, (0, 0), max(1.0, 0.02 * R / self.texel))
-        geo = crater + bed_s * (0.18 * d * _fbm(rng, (n, n), cells * 5, octaves=2) + 0.25 * d * (lab == SLOUGH))
-        geo = cv2.GaussianBlur(geo.astype(np.float32), (0, 0), max(1.0, 0.01 * R / self.texel))
+        bed_s = self._blur(bed, max(1.0, 0.02 * R / self.texel))
+        geo = crater + bed_s * (0.18 * d * self._win_fbm(rng, 5, octaves=2) + 0.25 * d * (lab == SLOUGH))
+        geo = self._blur(geo.astype(np.float32), max(1.0, 0.01 * R / self.texel))
         self.height_geo = geo.astype(np.float32)
         hb = bed_s * 0.004 * R * (bumps * (lab == GRANULATION) + 0.4 * fine)
-        hb = cv2.GaussianBlur(hb.astype(np.float32), (0, 0), 1.0)
-        gy, gx = np.gradient(hb, self.texel)
+        hb = self._blur(hb.astype(np.float32), 1.0)
+        gx, gy = self._grad(hb)
         self.bump_grad = np.stack([gx, gy], -1).astype(np.float32)  # d/du, d/dv
 
     # --- truth summaries --------------------------------------------------------------------
@@ -497,25 +557,25 @@ class _Scene:
         depth[hit] = np.einsum("ij,ij->i", pos - origins[hit].astype(np.float32), d)
 
         x, y = self._tex_coords(uv[:, 0], uv[:, 1])
-        inwin = (x >= -0.5) & (y >= -0.5) & (x < self.tex_res - 0.5) & (y < self.tex_res - 0.5)
+        rows, cols = self.tex_shape
+        tex = self._tex
+        inwin = (x >= -0.5) & (y >= -0.5) & (x < cols - 0.5) & (y < rows - 0.5)
         labels_hit = np.zeros(len(pos), np.uint8)
-        xi = np.clip(np.floor(x[inwin] + 0.5).astype(np.int64), 0, self.tex_res - 1)
-        yi = np.clip(np.floor(y[inwin] + 0.5).astype(np.int64), 0, self.tex_res - 1)
-        labels_hit[inwin] = self.labels[yi, xi]
+        xi = np.clip(np.floor(x[inwin] + 0.5).astype(np.int64), 0, cols - 1)
+        yi = np.clip(np.floor(y[inwin] + 0.5).astype(np.int64), 0, rows - 1)
+        labels_hit[inwin] = tex["labels"][yi, xi]
 
         alb = np.empty((len(pos), 3), np.float32)
-        alb[inwin] = _remap(self.albedo, x[inwin], y[inwin])
-        gh, gw = self.global_albedo.shape[:2]
+        alb[inwin] = _remap(tex["albedo"], x[inwin], y[inwin])
         out = ~inwin
-        alb[out] = _remap(self.global_albedo, (uv[out, 0] + self.u_half) / (2 * self.u_half) * gw - 0.5,
-                             (uv[out, 1] + self.v_half) / (2 * self.v_half) * gh - 0.5)
+        alb[out] = _remap(tex["global_albedo"], *self._global_xy(uv[out, 0], uv[out, 1]))
         spec = np.full(len(pos), 0.05, np.float32)
         shin = np.full(len(pos), 12.0, np.float32)
-        spec[inwin] = self.spec[yi, xi]
-        shin[inwin] = self.shin[yi, xi]
+        spec[inwin] = tex["spec"][yi, xi]
+        shin[inwin] = tex["shin"][yi, xi]
         # bump-mapped normal
         g = np.zeros((len(pos), 2), np.float32)
-        g[inwin] = _remap(self.bump_grad, x[inwin], y[inwin])
+        g[inwin] = _remap(tex["bump_grad"], x[inwin], y[inwin])
         nrm = nrm - g[:, :1] * tu - g[:, 1:2] * tv
         nrm /= np.sqrt(np.einsum("ij,ij->i", nrm, nrm))[:, None]
         # face the viewer (rays may graze the far side of a bump)
