@@ -58,12 +58,17 @@ def synth(
     height: int = typer.Option(480, min=16, help="Image height in pixels."),
     noise: float = typer.Option(1.0, min=0.0, help="Noise level of the automatic predictions (0 = exact)."),
     seed: int = typer.Option(0, help="Random seed; the same seed gives the same capture."),
+    layout: str = typer.Option(
+        "one-sided", help="one-sided (a hand-held arc above a wound on a limb or torso) | all-around "
+        "(a wound wrapped around a limb, filmed in one turn around it).",
+    ),
     force: bool = typer.Option(False, help="Replace OUT if it exists."),
 ) -> None:
     """Make a synthetic wound capture with exact truth for every frame."""
     from .synth import SynthConfig, synthesize
 
-    cfg = SynthConfig(frames=frames, annotated=annotated, width=width, height=height, noise=noise, seed=seed)
+    cfg = SynthConfig(frames=frames, annotated=annotated, width=width, height=height, noise=noise, seed=seed,
+                      layout=layout)
     result = synthesize(out, cfg, force=force)
     typer.echo(f"capture: {result.capture_dir}")
     typer.echo(f"truth:   {result.truth_dir}")

@@ -21,6 +21,7 @@ import shutil
 import time
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
+from typing import Literal
 
 import cv2
 import numpy as np
@@ -32,6 +33,7 @@ from .progress import track
 
 BACKGROUND, GRANULATION, SLOUGH, NECROTIC, EPITHELIAL, UNKNOWN = 0, 1, 2, 3, 4, 5
 WOUND_CLASSES = (GRANULATION, SLOUGH, NECROTIC, EPITHELIAL, UNKNOWN)
+LAYOUTS = ("one-sided", "all-around")
 
 
 @dataclass
@@ -44,8 +46,13 @@ class SynthConfig:
     height: int = 480
     noise: float = 1.0
     seed: int = 0
+    layout: Literal["one-sided", "all-around"] = "one-sided"
+    """one-sided: a hand-held arc above a wound on a limb or torso; all-around: a wound wrapped
+    around a limb, filmed in one turn around it."""
 
     def __post_init__(self) -> None:
+        if self.layout not in LAYOUTS:
+            raise LabelsynthError(f"synth: layout must be one of {', '.join(LAYOUTS)}, got {self.layout!r}")
         if self.frames < 2:
             raise LabelsynthError(f"synth: need at least 2 frames, got {self.frames}")
         if not 0 <= self.annotated <= self.frames:
@@ -98,6 +105,54 @@ def _fbm(rng: np.random.Generator, shape: tuple[int, int], cells: float, octaves
         total += amp
         amp *= 0.5
     return out / total
+
+
+def _noise_wrap(rng: np.random.Generator, shape: tuple[int, int], cells: tuple[float, float]) -> np.ndarray:
+    """As ``_noise``, periodic along axis 0: row 0 continues row ``shape[0] - 1``.
+
+    The period holds a whole number of cells; the random grid is tiled three times along the
+    rows and resized, and the middle period is kept (cubic interpolation only reaches two
+    cells either way, so it sees a periodic grid).
+    """
+    h, w = shape
+    ch = max(2, int(round(cells[0])))
+    cw = max(2, int(np.ceil(cells[1]))) + 3
+    grid = rng.standard_normal((ch, cw)).astype(np.float32)
+    tw = max(w, int(np.ceil(w * (cw - 1) / max(cells[1], 1e-3))))
+    out = cv2.resize(np.concatenate([grid, grid, grid], 0), (tw, 3 * h), interpolation=cv2.INTER_CUBIC)
+    ox = (tw - w) // 2
+    out = out[h: 2 * h, ox: ox + w]
+    out = out - out.mean()
+    return (out / (out.std() + 1e-6)).astype(np.float32)
+
+
+def _fbm_wrap(rng: np.random.Generator, shape: tuple[int, int], cells: tuple[float, float], octaves: int = 4,
+              aspect: float = 1.0) -> np.ndarray:
+    """As ``_fbm``, periodic along axis 0; ``cells`` = (rows, columns) features of the first octave."""
+    out = np.zeros(shape, np.float32)
+    amp, total = 1.0, 0.0
+    for o in range(octaves):
+        out += amp * _noise_wrap(rng, shape, (cells[0] * 2**o * aspect, cells[1] * 2**o))
+        total += amp
+        amp *= 0.5
+    return out / total
+
+
+def _fold_rows(img: np.ndarray, extra: int) -> np.ndarray:
+    """Make an image periodic along axis 0: its last ``extra`` rows are cross-faded into its first.
+
+    ``img`` has N + extra rows; the result has N, and row 0 continues row N - 1.
+    """
+    n = img.shape[0] - extra
+    out = img[:n].copy()
+    w = ((np.arange(extra, dtype=np.float32) + 0.5) / extra).reshape(-1, *([1] * (img.ndim - 1)))
+    out[:extra] = w * img[:extra] + (1 - w) * img[n: n + extra]
+    return out
+
+
+def _pad_rows(tex: np.ndarray) -> np.ndarray:
+    """A periodic texture with its last row put before its first and its first after its last."""
+    return np.concatenate([tex[-1:], tex, tex[:1]], axis=0)
 
 
 def _bilinear(tex: np.ndarray, x: np.ndarray, y: np.ndarray) -> np.ndarray:
@@ -505,10 +560,13 @@ class _Scene:
         self.bump_grad = np.stack([gx, gy], -1).astype(np.float32)  # d/du, d/dv
 
     # --- truth summaries --------------------------------------------------------------------
+    def _area_step(self) -> int:
+        return max(1, self.tex_res // 1024)
+
     def class_areas(self) -> dict[str, float]:
         """Surface area per class (world units^2), integrating the surface's area element."""
         U, V = self._window_coords()
-        step = max(1, self.tex_res // 1024)
+        step = self._area_step()
         U, V, lab = U[::step, ::step].astype(np.float64), V[::step, ::step].astype(np.float64), self.labels[::step, ::step]
         P = self.surface(U, V, self.displacement(U, V))
         h = self.texel * step
@@ -607,6 +665,202 @@ class _Scene:
         return rgb, truth.reshape(H, W), depth.reshape(H, W)
 
 
+class _AroundScene(_Scene):
+    """A wound wrapped around a limb (layout "all-around"), for a capture filmed all around it.
+
+    The body is the limb tube of the one-sided layout, long enough (u in [-4, 4]) that its open
+    ends stay out of view of an orbit near u = 0, and closed along its seam (v = +-pi*radius).
+    The wound is a band around the limb: a centre line along u and a half-width
+    (``wound_radius``, the band's typical half-width) that vary with the angle v/radius, over a
+    fraction ``coverage`` of the circumference with rounded ends, or over all of it (a
+    circumferential wound). Inside it, the tissues are drawn as in the one-sided layout.
+
+    The texture window spans u in [-half, half] and the whole circumference in v (rows along v,
+    columns along u, square texels); every texture is periodic in v, so labels, colour and
+    relief run on across the seam. Rendering samples copies padded by one wrapped row.
+    """
+
+    def __init__(self, rng: np.random.Generator, detail: int) -> None:
+        self.kind = "limb"
+        self.radius = float(rng.uniform(0.4, 0.6))
+        self.taper = float(rng.uniform(-0.06, 0.06))  # relative radius change per unit length
+        self.u_half, self.v_half = 4.0, float(np.pi * self.radius)
+        self.wound_radius = float(rng.uniform(0.12, 0.22))
+        self.full_ring = bool(rng.random() < 0.4)
+        self.coverage = 1.0 if self.full_ring else float(rng.uniform(0.6, 0.92))
+        self.band_angle = float(rng.uniform(-np.pi, np.pi))  # middle of the band (radians around x)
+        self.crater_depth = float(rng.uniform(0.03, 0.06) * 2 * self.wound_radius)
+        # texel budget: 1.5x the one-sided window's texel count
+        self.detail = int(detail)
+        period = 2 * self.v_half
+        half = 3.6 * self.wound_radius
+        texel = float(np.sqrt(2 * half * period / (1.5 * float(detail) ** 2)))
+        self.n_v = max(32, int(round(period / texel)))
+        self.texel = period / self.n_v
+        self.tex_res = int(np.ceil(2 * half / self.texel))  # columns, along u
+        self.half = self.tex_res * self.texel / 2  # texture window half-size along u
+        self._layout(rng)
+        self._textures(rng)
+        self._sampling_textures()
+        self._mesh(rng)
+        self.axis_point = np.array([0.0, 0.0, -self.radius])
+        vc = np.array([self.band_angle * self.radius])
+        self.center = self.surface(np.zeros(1), vc, self.displacement(np.zeros(1), vc))[0]
+
+    # --- texture window -------------------------------------------------------------------
+    def _window_coords(self) -> tuple[np.ndarray, np.ndarray]:
+        cu = (np.arange(self.tex_res) + 0.5) * self.texel - self.half
+        cv = (np.arange(self.n_v) + 0.5) * self.texel - self.v_half
+        U, V = np.meshgrid(cu, cv, indexing="xy")  # rows along v, columns along u
+        return U.astype(np.float32), V.astype(np.float32)
+
+    def _tex_coords(self, u: np.ndarray, v: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        x = (u + self.half) / self.texel - 0.5
+        y = (v + self.v_half) / self.texel + 0.5  # + 1: the padded row before row 0
+        return x, y
+
+    def _global_xy(self, u: np.ndarray, v: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        gh, gw = self.global_albedo.shape[:2]
+        return (u + self.u_half) / (2 * self.u_half) * gw - 0.5, (v + self.v_half) / (2 * self.v_half) * gh + 0.5
+
+    def _sampling_textures(self) -> None:
+        self._tex = {name: _pad_rows(getattr(self, name)) for name in
+                     ("labels", "albedo", "spec", "shin", "bump_grad", "height_geo", "global_albedo")}
+        self.tex_shape = self._tex["labels"].shape
+
+    def _cells(self, mult: float) -> tuple[float, float]:
+        """Noise features wound_radius / mult apart: (per period along v, per window along u)."""
+        return 2 * self.v_half * mult / self.wound_radius, 2 * self.half * mult / self.wound_radius
+
+    def _win_noise(self, rng: np.random.Generator, mult: float) -> np.ndarray:
+        return _noise_wrap(rng, (self.n_v, self.tex_res), self._cells(mult))
+
+    def _win_fbm(self, rng: np.random.Generator, mult: float, octaves: int, aspect: float = 1.0) -> np.ndarray:
+        return _fbm_wrap(rng, (self.n_v, self.tex_res), self._cells(mult), octaves=octaves, aspect=aspect)
+
+    def _blur(self, img: np.ndarray, sigma: float) -> np.ndarray:
+        p = min(self.n_v, int(np.ceil(4 * sigma)) + 2)
+        ext = np.concatenate([img[-p:], img, img[:p]], axis=0)
+        return cv2.GaussianBlur(ext, (0, 0), sigma)[p: p + self.n_v]
+
+    def _grad(self, img: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        gx = np.gradient(img, self.texel, axis=1)
+        gy = (np.roll(img, -1, axis=0) - np.roll(img, 1, axis=0)) / (2 * self.texel)
+        return gx, gy
+
+    def _wrap_v(self, dv: np.ndarray) -> np.ndarray:
+        """A difference along v taken the short way round the limb."""
+        return (dv + self.v_half) % (2 * self.v_half) - self.v_half
+
+    def _dist_to(self, mask: np.ndarray) -> np.ndarray:
+        p = min(self.n_v, int(np.ceil(3 * self.wound_radius / self.texel)))
+        ext = np.concatenate([mask[-p:], mask, mask[:p]], axis=0)
+        return cv2.distanceTransform((~ext).astype(np.uint8), cv2.DIST_L2, 5)[p: p + self.n_v] * self.texel
+
+    # --- wound layout ---------------------------------------------------------------------
+    def _layout(self, rng: np.random.Generator) -> None:
+        """The band's outline from harmonics of the angle and periodic noise; tissues as one-sided."""
+        R, r = self.wound_radius, self.radius
+        U, V = self._window_coords()
+        th = V / np.float32(r)  # angle around the axis, -pi..pi (float32 like the window)
+        # centre line meandering along u, half-width varying around the limb
+        uc = np.zeros_like(th)
+        for k in (1, 2, 3):
+            uc += R * rng.uniform(0.0, 0.25 / k) * np.cos(k * th + rng.uniform(0, 2 * np.pi))
+        hw = np.ones_like(th)
+        for k in range(2, 9):
+            hw += rng.uniform(0.0, 0.25 / k) * np.cos(k * th + rng.uniform(0, 2 * np.pi))
+        hw = R * np.maximum(hw, 0.6)
+        warp = 0.12 * R
+        a = U - uc + warp * self._win_noise(rng, 1.5)
+        along = warp * self._win_noise(rng, 1.5)
+        rho = np.abs(a) / hw
+        if not self.full_ring:  # rounded ends: a capsule along v of total length coverage x circumference
+            s = np.abs(self._wrap_v(V - self.band_angle * r)) + along
+            end = np.maximum(0.0, s - (self.coverage * self.v_half - hw)) / hw
+            rho = np.hypot(rho, end)
+        self.rho = rho.astype(np.float32)
+        # the rim's on/off field: harmonics of the angle, one set per edge, blended across the band
+        ks = range(1, 7)
+        side = _smoothstep(-0.5, 0.5, a / hw)
+
+        def rim_on() -> np.ndarray:
+            lo = sum(rng.uniform(0.3, 1.0) * np.cos(k * th + rng.uniform(0, 2 * np.pi)) for k in ks)
+            hi = sum(rng.uniform(0.3, 1.0) * np.cos(k * th + rng.uniform(0, 2 * np.pi)) for k in ks)
+            return (1 - side) * lo + side * hi
+
+        bed_area = float((rho < 1.0).sum()) * self.texel**2
+        blobs = int(np.clip(round(bed_area / (np.pi * R * R) / 4), 1, 4))  # about one per 4 one-sided wounds
+        self.labels = self._draw_tissues(
+            rng, U, V, rho, blobs=blobs,
+            noise=lambda mult: self._win_noise(rng, mult),
+            fbm=lambda mult, octaves: self._win_fbm(rng, mult, octaves=octaves),
+            dist=lambda cu, cv: np.hypot(U - cu, self._wrap_v(V - cv)),
+            dist_to=self._dist_to, rim_on=rim_on,
+        )
+
+    # --- textures -------------------------------------------------------------------------
+    def _window_skin(self, rng: np.random.Generator, tone: np.ndarray) -> np.ndarray:
+        gw = int(np.clip(2 * self.u_half / 0.0025, 256, 2400))
+        gh = int(np.clip(2 * self.v_half / 0.0025, 256, 2400))
+        if self.detail < 1024:
+            gw, gh = max(128, gw // 3), max(128, gh // 3)
+        m = max(4, gh // 16)
+        g = self._skin(rng, (gh + m, gw), (2 * self.v_half * (gh + m) / gh, 2 * self.u_half), tone, fine=False)
+        self.global_albedo = _fold_rows(g, m)
+        U, V = self._window_coords()
+        gx, gy = self._global_xy(U, V)
+        base = _bilinear(_pad_rows(self.global_albedo), gx.ravel(), gy.ravel()).reshape(*U.shape, 3)
+        m = max(8, self.n_v // 16)
+        det = self._skin(rng, (self.n_v + m, self.tex_res), (self.texel * (self.n_v + m), 2 * self.half), tone, fine=True)
+        detail = _fold_rows(det, m) / np.maximum(tone, 1)
+        edge = np.minimum(U + self.half, self.half - U)  # the window has edges along u only
+        fade = _smoothstep(0.0, 0.25 * self.half, edge)[..., None]
+        return base * (1 - fade + fade * detail)
+
+    # --- geometry -------------------------------------------------------------------------
+    def _mesh(self, rng: np.random.Generator) -> None:
+        n_v = int(np.clip(self.n_v // 4, 240, 1200))
+        step = 2 * self.v_half / n_v
+        v1 = -self.v_half + step * np.arange(n_v)
+        # along u: even steps over the texture window, then 8 % longer each to the tube's ends
+        m = int(np.ceil(self.half / step))
+        outer, x, du = [], m * step, step
+        while x < self.u_half:
+            du *= 1.08
+            x = min(self.u_half, x + du)
+            outer.append(x)
+        outer = np.array(outer)
+        u1 = np.concatenate([-outer[::-1], step * np.arange(-m, m + 1), outer])
+        U, V = np.meshgrid(u1, v1, indexing="ij")  # (nu, n_v): i along u, j along v
+        P = self.surface(U, V, self.displacement(U, V))
+        du = np.gradient(P, axis=0)
+        dv = 0.5 * (np.roll(P, -1, axis=1) - np.roll(P, 1, axis=1))  # around the closed tube
+
+        def close(a: np.ndarray) -> np.ndarray:  # repeat the first column (v = -pi r) at v = +pi r
+            return np.concatenate([a, a[:, :1]], axis=1)
+
+        V = close(V)
+        V[:, -1] = self.v_half
+        self._set_mesh(close(U), V, close(P), close(du), close(dv))
+
+    # --- truth summaries --------------------------------------------------------------------
+    def _area_step(self) -> int:
+        return max(1, int(np.ceil(np.sqrt(self.n_v * self.tex_res / 1.5e6))))
+
+    def describe(self) -> dict:
+        d = super().describe()
+        normal = np.array([0.0, np.sin(self.band_angle), np.cos(self.band_angle)])
+        d.update(layout="all-around", wound_normal=[float(x) for x in normal],
+                 axis_point=[float(x) for x in self.axis_point], texture_window_half=[self.half, self.v_half],
+                 band={"half_width": self.wound_radius, "coverage": self.coverage, "full_ring": self.full_ring,
+                       "middle_angle_deg": float(np.rad2deg(self.band_angle))},
+                 note="x = u, radius(u) = radius*(1+taper*u) + h, angle = v/radius, top (z) at v=0; world z = r*cos - radius;"
+                      " wound_radius = typical half-width of the band along x; wound_center = the band's middle at x=0")
+        return d
+
+
+
 # ------------------------------------------------------------------------------------------
 # cameras
 # ------------------------------------------------------------------------------------------
@@ -652,6 +906,46 @@ def _camera_path(rng: np.random.Generator, scene: _Scene, cfg: SynthConfig) -> t
     info = {"hfov_deg": float(np.rad2deg(hfov)), "typical_distance": float(d0),
             "elevation_deg": [float(np.rad2deg(el.min())), float(np.rad2deg(el.max()))],
             "distance": [float(dist.min()), float(dist.max())], "sweep_deg": float(np.rad2deg(sweep))}
+    return cams, info
+
+
+def _orbit_path(rng: np.random.Generator, scene: _AroundScene, cfg: SynthConfig) -> tuple[list[Camera], dict]:
+    """An all-around path: one turn around the limb's axis (world x), always aimed at the axis
+    near the wound, with smooth random wobbles in distance, position along the axis, tilt
+    (looking a little along the limb) and roll. The axis runs across the image."""
+    hfov = np.deg2rad(rng.uniform(55, 65))
+    tan = np.tan(hfov / 2)
+    fx = cfg.width / (2 * tan)
+    r, R = scene.radius, scene.wound_radius
+    # distance from the axis: the limb's outline takes 75-95 % of the image height, so the band
+    # runs through the frame and the limb's sides show; the region of interest (about the image
+    # footprint at the axis) then holds the limb's cross-section with room to spare
+    vhalf = np.arctan(tan * cfg.height / cfg.width)
+    d0 = float(r / np.sin(rng.uniform(0.75, 0.95) * vhalf))
+    n = cfg.frames
+    t = np.arange(n) / n
+    turn = 2 * np.pi * (1 if rng.random() < 0.5 else -1)
+    theta = rng.uniform(-np.pi, np.pi) + turn * t + 0.08 * _smooth_curve(rng, t, (1.7, 3.1))
+    dist = d0 * (1 + 0.12 * _smooth_curve(rng, t, (0.9, 1.9)))
+    along = 0.5 * R * _smooth_curve(rng, t, (0.7, 1.6))  # aim point along the axis
+    tilt = np.deg2rad(rng.uniform(5, 15)) * _smooth_curve(rng, t, (0.8, 1.7))
+    roll = np.deg2rad(6) * _smooth_curve(rng, t, (1.1, 2.7))
+    x_axis = np.array([1.0, 0, 0])
+    cams = []
+    for i in range(n):
+        radial = np.array([0.0, np.sin(theta[i]), np.cos(theta[i])])
+        tangent = np.array([0.0, np.cos(theta[i]), -np.sin(theta[i])])
+        target = scene.axis_point + along[i] * x_axis
+        eye = target + dist[i] * (np.cos(tilt[i]) * radial + np.sin(tilt[i]) * x_axis)
+        c2w = look_at(eye, target, up=tangent)  # image right = +x (the axis)
+        cr, sr = np.cos(roll[i]), np.sin(roll[i])
+        c2w[:3, :3] = c2w[:3, :3] @ np.array([[cr, -sr, 0], [sr, cr, 0], [0, 0, 1]])
+        cams.append(Camera(cfg.width, cfg.height, fx, fx, cfg.width / 2, cfg.height / 2, c2w))
+    info = {"kind": "orbit", "axis": "x", "hfov_deg": float(np.rad2deg(hfov)), "typical_distance": float(d0),
+            "distance": [float(dist.min()), float(dist.max())],
+            "tilt_deg": [float(np.rad2deg(tilt.min())), float(np.rad2deg(tilt.max()))],
+            "along_axis": [float(along.min()), float(along.max())], "sweep_deg": float(np.rad2deg(turn)),
+            "start_angle_deg": float(np.rad2deg(theta[0]))}
     return cams, info
 
 
@@ -808,12 +1102,20 @@ def synthesize(out: Path, cfg: SynthConfig | None = None, *, force: bool = False
     try:
         rng = np.random.default_rng([cfg.seed, 0])
         detail = int(np.clip(3.2 * max(cfg.width, cfg.height), 384, 2048))
-        scene = _Scene(rng, detail)
-        cams, path_info = _camera_path(rng, scene, cfg)
         key = np.array([0.35, -0.45, 1.0])
         fill = np.array([-0.6, 0.5, 0.5])
-        lights = {"ambient": 0.30, "headlight": 0.12,
-                  "directional": [(key / np.linalg.norm(key), 0.62), (fill / np.linalg.norm(fill), 0.18)]}
+        if cfg.layout == "one-sided":
+            scene = _Scene(rng, detail)
+            cams, path_info = _camera_path(rng, scene, cfg)
+            lights = {"ambient": 0.30, "headlight": 0.12,
+                      "directional": [(key / np.linalg.norm(key), 0.62), (fill / np.linalg.norm(fill), 0.18)]}
+        else:  # all-around: the underside is seen too, so light comes from below as well
+            scene = _AroundScene(rng, detail)
+            cams, path_info = _orbit_path(rng, scene, cfg)
+            bounce = np.array([0.25, 0.4, -1.0])
+            lights = {"ambient": 0.30, "headlight": 0.2,
+                      "directional": [(key / np.linalg.norm(key), 0.55), (fill / np.linalg.norm(fill), 0.18),
+                                      (bounce / np.linalg.norm(bounce), 0.3)]}
 
         cap, truth_dir = tmp / "capture", tmp / "truth"
         for d in (cap / "images", cap / "annotations", cap / "predictions", truth_dir / "depth"):
@@ -839,7 +1141,7 @@ def synthesize(out: Path, cfg: SynthConfig | None = None, *, force: bool = False
                       "frames": frames_json}
         (cap / "transforms.json").write_text(json.dumps(transforms, indent=2))
         annotated = [names[i] for i in sorted(ann)]
-        meta = {"seed": cfg.seed, "config": asdict(cfg), "surface": scene.describe(), "camera_path": path_info,
+        meta = {"seed": cfg.seed, "layout": cfg.layout, "config": asdict(cfg), "surface": scene.describe(), "camera_path": path_info,
                 "class_areas": scene.class_areas(), "area_units": "world units squared",
                 "annotated": annotated, "frames": names,
                 "classes": [{"id": c.id, "name": c.name} for c in DEFAULT_CLASSES]}
