@@ -1,7 +1,8 @@
 """Synthetic wound captures with exact truth for every frame.
 
 A procedural wound on a curved body surface (a tapered limb or a gently curved torso patch)
-is ray-cast from a hand-held-like camera path. Class labels, albedo and relief are functions
+is ray-cast from a hand-held-like camera path (layout "one-sided"), or a wound wrapped around a
+limb is filmed in one turn around it (layout "all-around"). Class labels, albedo and relief are functions
 of the surface parameters (u, v), so every view agrees on the class of a surface point, and
 colour and truth of a pixel come from the same ray hit. Writes::
 
