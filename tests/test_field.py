@@ -228,3 +228,31 @@ def test_recipes_load_and_reject_typos():
         load_recipe("no-such-recipe")
     with pytest.raises(RecipeError, match="class_weighting: 'balanced' is not one of"):
         load_recipe("fast", ["semantic.class_weighting=balanced"])
+
+
+def test_initial_shape_follows_how_the_cameras_see_a_plane():
+    """A plane only for cameras that all look at it from one side, squarely enough.
+
+    The lego of NeRF-synthetic (cameras on a hemisphere around the object) averages a mean
+    viewing direction of length 0.575, above the 0.5 that once picked a plane; some of its
+    cameras see any plane edge-on, so it must get the sphere."""
+    from labelsynth.cameras import look_at
+    from labelsynth.field.sdf import choose_init_shape
+
+    def forwards(elevations_deg, azimuths_deg, target=(0.0, 0.0, 0.0)):
+        out = []
+        for el in np.radians(elevations_deg):
+            for az in np.radians(azimuths_deg):
+                eye = 3.0 * np.array([np.cos(el) * np.cos(az), np.cos(el) * np.sin(az), np.sin(el)])
+                out.append(-look_at(eye, np.asarray(target))[:3, 2])
+        return np.array(out)
+
+    hemisphere = forwards([5, 20, 35, 50, 65, 80], np.arange(0, 360, 30))  # lego-like
+    assert np.linalg.norm(hemisphere.mean(0)) > 0.5  # what fooled the old rule
+    assert choose_init_shape(hemisphere) == "sphere"
+    assert choose_init_shape(forwards([0], np.arange(0, 360, 20))) == "sphere"  # an orbit
+    assert choose_init_shape(forwards([40, 60, 80], np.arange(0, 300, 25))) == "plane"  # a phone's arc over a wound
+    assert choose_init_shape(forwards([90], [0])) == "plane"  # one camera
+    # a few stray oblique frames do not turn a one-sided capture into a sphere
+    arc = forwards([50, 65, 80], np.arange(0, 360, 30))
+    assert choose_init_shape(np.concatenate([arc, forwards([2], [0, 180])])) == "plane"

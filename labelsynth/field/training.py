@@ -56,13 +56,24 @@ def _camera_rays(camera: Camera, pixels: np.ndarray | None = None) -> tuple[np.n
     return o.astype(np.float32), d.astype(np.float32)
 
 
+def border_colour(images: Sequence[np.ndarray], fraction: float = 0.03) -> np.ndarray:
+    """Median RGB (0-1) of the images' outer rim: the likeliest colour of what lies beyond
+    the region of interest (a white or black backdrop, a table, skin around a wound)."""
+    rims = []
+    for img in images:
+        b = max(1, int(round(fraction * min(img.shape[:2]))))
+        rims += [img[:b].reshape(-1, 3), img[-b:].reshape(-1, 3), img[:, :b].reshape(-1, 3), img[:, -b:].reshape(-1, 3)]
+    return np.median(np.concatenate(rims), axis=0) / 255.0
+
+
 class RayBank:
     """Every pixel of every frame at the training scale, as rays and target colours."""
 
     def __init__(self, cameras: Sequence[Camera], images: Sequence[np.ndarray], device: torch.device) -> None:
-        origins, dirs, rgbs = [], [], []
+        origins, dirs, rgbs, small = [], [], [], []
         for cam, img in zip(cameras, images):
             img = _resize(img, cam, cv2.INTER_AREA)
+            small.append(img)
             o, d = _camera_rays(cam)
             origins.append(o)
             dirs.append(d)
@@ -71,6 +82,7 @@ class RayBank:
         self.dirs = torch.from_numpy(np.concatenate(dirs)).to(device)
         self.rgb = torch.from_numpy(np.concatenate(rgbs)).to(device)
         self.device = device
+        self.border_rgb = border_colour(small)
 
     def __len__(self) -> int:
         return self.origins.shape[0]
