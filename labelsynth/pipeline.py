@@ -133,6 +133,7 @@ def fit_geometry(
     del images
     sdf = SDFField(geo.sdf)
     init_shape = sdf.initialise_shape([unit[i].forward for i in indices])
+    sdf.initialise_background(bank.border_rgb)
     sdf = sdf.to(device)
     grid, gstats = train_geometry(sdf, bank, geo, seed=seed, progress=progress)
     for p in sdf.parameters():
@@ -327,9 +328,12 @@ def expand(
 
 
 def score_against_truth(out: str | Path, truth_dir: str | Path, classes, exclude: set[str] = frozenset()):
-    """Dice/recall of OUT/masks against exact truth masks (frames in ``exclude`` not scored)."""
-    import cv2
+    """Dice/recall of OUT/masks against exact truth masks (frames in ``exclude`` not scored).
 
+    Both are read with the capture's mask reader, so palette or greyscale id PNGs alike
+    give class ids (OpenCV would turn a palette PNG into colours).
+    """
+    from .capture.masks import read_mask
     from .metrics import score_frames
 
     out, truth_dir = Path(out), Path(truth_dir)
@@ -339,8 +343,8 @@ def score_against_truth(out: str | Path, truth_dir: str | Path, classes, exclude
         truth_path = truth_dir / f"{name}.png"
         if not truth_path.exists():
             raise LabelsynthError(f"{truth_path}: no truth mask for frame '{name}'")
-        preds.append(cv2.imread(str(out / "masks" / f"{name}.png"), cv2.IMREAD_UNCHANGED))
-        truths.append(cv2.imread(str(truth_path), cv2.IMREAD_UNCHANGED))
+        preds.append(read_mask(out / "masks" / f"{name}.png", None, classes))
+        truths.append(read_mask(truth_path, None, classes))
     return score_frames(preds, truths, classes, names)
 
 
