@@ -28,6 +28,7 @@ import cv2
 import numpy as np
 
 from .cameras import Camera, look_at
+from .capture.select import spread_indices
 from .classes import DEFAULT_CLASSES
 from .errors import LabelsynthError
 from .progress import track
@@ -1063,10 +1064,9 @@ def predict_errors(truth: np.ndarray, on_body: np.ndarray, rng: np.random.Genera
 # the whole capture
 # ------------------------------------------------------------------------------------------
 def annotated_indices(frames: int, annotated: int) -> list[int]:
-    """Evenly spread frame indices (centres of equal segments of the path)."""
-    if annotated <= 0:
-        return []
-    return sorted({int(np.floor((k + 0.5) * frames / annotated)) for k in range(annotated)})
+    """Evenly spread frame indices (centres of equal segments of the path), the same rule as
+    ``--annotated-frames spread:N``."""
+    return spread_indices(frames, annotated)
 
 
 def _write_png(path: Path, img: np.ndarray) -> None:

@@ -41,7 +41,7 @@ def select_frames(spec: FrameSpec, names: Sequence[str], where: str = "--annotat
             else:
                 if k > n:
                     raise CaptureError(f"{where}: '{text}' asks for {k} frames but the capture has {n}")
-                picked = sorted({int((j + 0.5) * n / k) for j in range(k)})
+                picked = spread_indices(n, k)
             return [names[i] for i in picked]
         tokens: list[str | int] = [t.strip() for t in text.split(",")]
         if any(t == "" for t in tokens):
@@ -63,6 +63,13 @@ def select_frames(spec: FrameSpec, names: Sequence[str], where: str = "--annotat
             raise CaptureError(f"{where}: frame index {i} out of range (the capture has {n} frames, 0..{n - 1})")
         picked_set.add(i)
     return [names[i] for i in sorted(picked_set)]
+
+
+def spread_indices(n: int, k: int) -> list[int]:
+    """``k`` indices evenly spread over ``n`` frames: the middle of each of ``k`` equal parts."""
+    if k <= 0:
+        return []
+    return sorted({int((j + 0.5) * n / k) for j in range(k)})
 
 
 def _positive(text: str, where: str) -> int:
