@@ -108,3 +108,15 @@ def test_bad_label_mode_is_a_clear_error(tiny_expanded, tmp_path):
         expand(capture, tmp_path / "o", labels="predictions", progress=False)
     with pytest.raises(LabelsynthError, match="--labels must be one of"):
         expand(tiny_expanded.capture_dir, tmp_path / "o", labels="everything", progress=False)
+
+
+def test_a_field_saved_before_the_outer_background_still_loads(tiny_expanded, tmp_path):
+    run = tiny_expanded
+    state = torch.load(run.out / "field.pt", weights_only=False)
+    state["sdf"] = {k: v for k, v in state["sdf"].items() if not k.startswith("outer.")}
+    del state["recipe"]["geometry"]["sdf"]["background"], state["recipe"]["geometry"]["sdf"]["outer"]
+    torch.save(state, tmp_path / "old.pt")
+    sem = SemanticField.load(tmp_path / "old.pt", torch.device("cpu"))
+    assert sem.sdf.outer is None and sem.recipe.geometry.sdf.background == "env"
+    cam = load_capture(run.capture_dir).unit_cameras()[0]
+    assert sem.render(cam).mask.shape == (cam.height, cam.width)

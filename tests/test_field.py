@@ -256,3 +256,51 @@ def test_initial_shape_follows_how_the_cameras_see_a_plane():
     # a few stray oblique frames do not turn a one-sided capture into a sphere
     arc = forwards([50, 65, 80], np.arange(0, 360, 30))
     assert choose_init_shape(np.concatenate([arc, forwards([2], [0, 180])])) == "plane"
+
+
+def test_contraction_keeps_the_cube_and_folds_the_rest_into_a_shell():
+    from labelsynth.field.background import contract
+
+    inside = torch.rand(100, 3) * 2 - 1
+    assert torch.equal(contract(inside), inside)
+    far = torch.randn(100, 3) * 1e4
+    r = contract(far).abs().amax(-1)
+    assert bool(((r > 1) & (r < 2)).all())
+    edge = torch.tensor([[1.0, 0.3, -0.2]])
+    assert torch.allclose(contract(edge * 1.0001), edge, atol=1e-3)  # continuous at the wall
+
+
+def test_outer_background_starts_clear_and_runs_only_where_the_surface_lets_light_through():
+    from labelsynth.field.encoding import sh_deg2
+    from labelsynth.field.sdf import SDFConfig, SDFField
+
+    torch.manual_seed(0)
+    field = SDFField(SDFConfig(levels=2, log2_table=8, base_resolution=4, max_resolution=8, background="outer"))
+    field.initialise_background([1.0, 1.0, 1.0])  # a white backdrop
+    origins = torch.tensor([[0.0, 0.0, 3.0]]).repeat(6, 1)
+    dirs = torch.nn.functional.normalize(torch.randn(6, 3), dim=-1)
+    far = torch.full((6,), 2.5)
+    rgb, transmittance = field.outer(origins, dirs, far)
+    assert bool((transmittance > 0.9).all())  # transparent at the start: the backdrop shows
+    full = field.get_background(dirs, origins, far)
+    assert torch.allclose(full, torch.full_like(full, 0.98), atol=0.02)
+    visible = torch.tensor([True, False, True, False, False, True])
+    part = field.get_background(dirs, origins, far, visible=visible)
+    env = torch.sigmoid(field.background(sh_deg2(dirs)))
+    assert torch.allclose(part[visible], full[visible]) and torch.allclose(part[~visible], env[~visible])
+
+
+def test_partial_occupancy_updates_agree_with_full_ones_while_the_surface_moves_little():
+    radius = [0.5]
+
+    def sdf(p):
+        return p.norm(dim=-1) - radius[0]
+
+    partial = OccupancyGrid(32, full_every=4, margin=0.1)
+    full = OccupancyGrid(32, full_every=1)
+    for step in range(9):
+        radius[0] = 0.5 + 0.01 * step  # moves far less than the margin between updates
+        partial.update(sdf, 0.05, jitter=False)
+        full.update(sdf, 0.05, jitter=False)
+        assert torch.equal(partial.occupied, full.occupied), step
+    assert 0.0 < float(full.occupied.float().mean()) < 0.5

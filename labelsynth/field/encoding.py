@@ -189,3 +189,22 @@ class _HashInterp(torch.autograd.Function):
             grad_pos = torch.stack([gx, gy, gz], dim=-1)  # (N, L, 3): d/d(pos) per level
             grad_x = (grad_pos * enc.resolutions[:L][None, :, None]).sum(1) * 0.5 * inside.to(g.dtype)
         return grad_x, grad_table, None
+
+
+def sh_deg2(d: torch.Tensor) -> torch.Tensor:
+    """Real spherical harmonics up to degree 2 (9 values): a smooth code for view direction."""
+    x, y, z = d.unbind(-1)
+    return torch.stack(
+        [
+            torch.full_like(x, 0.28209479),
+            -0.48860251 * y,
+            0.48860251 * z,
+            -0.48860251 * x,
+            1.09254843 * x * y,
+            -1.09254843 * y * z,
+            0.31539157 * (2 * z * z - x * x - y * y),
+            -1.09254843 * x * z,
+            0.54627421 * (x * x - y * y),
+        ],
+        dim=-1,
+    )

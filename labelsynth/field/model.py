@@ -140,6 +140,8 @@ class SemanticField:
     def load(cls, path: Path, device: torch.device) -> "SemanticField":
         state = torch.load(path, map_location=device, weights_only=False)
         recipe = _build(Recipe, state["recipe"], str(path))
+        if not any(k.startswith("outer.") for k in state["sdf"]):
+            recipe.geometry.sdf.background = "env"  # files from before the outer background
         classes = ClassMap(tuple(ClassInfo(c["id"], c["name"], tuple(c["color"]), c["wound_bed"]) for c in state["classes"]["classes"]))
         sdf = SDFField(recipe.geometry.sdf).to(device)
         sdf_state = state["sdf"]

@@ -7,13 +7,14 @@ semantic head reads), ``get_color`` the view-dependent appearance used only to f
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import torch
 from torch import nn
 from torch.nn import functional as F
 
-from .encoding import HashGridEncoding
+from .background import OuterBackground, OuterConfig
+from .encoding import HashGridEncoding, sh_deg2
 
 
 @dataclass
@@ -29,25 +30,10 @@ class SDFConfig:
     init_shape: str = "auto"  # auto | sphere | plane (see SDFField.initialise_shape)
     init_radius: float = 0.5  # sphere initialisation: radius in the unit cube
     init_variance: float = 0.3  # inv_s = exp(10 * variance)
-
-
-def _sh_deg2(d: torch.Tensor) -> torch.Tensor:
-    """Real spherical harmonics up to degree 2 (9 values): a smooth code for view direction."""
-    x, y, z = d.unbind(-1)
-    return torch.stack(
-        [
-            torch.full_like(x, 0.28209479),
-            -0.48860251 * y,
-            0.48860251 * z,
-            -0.48860251 * x,
-            1.09254843 * x * y,
-            -1.09254843 * y * z,
-            0.31539157 * (2 * z * z - x * x - y * y),
-            -1.09254843 * x * z,
-            0.54627421 * (x * x - y * y),
-        ],
-        dim=-1,
-    )
+    # env: a colour per direction beyond the cube; outer: also a NeRF over contracted space
+    # outside it (field.background), for a table or a room close behind the object
+    background: str = "outer"
+    outer: OuterConfig = field(default_factory=OuterConfig)
 
 
 # A plane is a useful start only where the cameras see its front face squarely: beyond 60
@@ -100,6 +86,9 @@ class SDFField(nn.Module):
             nn.Linear(cfg.color_hidden, 3),
         )
         self.background = nn.Sequential(nn.Linear(9, 32), nn.ReLU(inplace=True), nn.Linear(32, 3))
+        if cfg.background not in ("env", "outer"):
+            raise ValueError(f"unknown background '{cfg.background}' (env or outer)")
+        self.outer = OuterBackground(cfg.outer) if cfg.background == "outer" else None
         self.variance = nn.Parameter(torch.tensor(cfg.init_variance))
 
     def _geometric_init(self, in_dim: int) -> None:
@@ -158,10 +147,13 @@ class SDFField(nn.Module):
         import numpy as np
 
         c = np.clip(np.asarray(rgb, dtype=np.float64).reshape(3), 0.02, 0.98)
+        logit = torch.as_tensor(np.log(c / (1.0 - c)), dtype=torch.float32)
         with torch.no_grad():
             last = self.background[-1]
             last.weight.mul_(0.01)
-            last.bias.copy_(torch.as_tensor(np.log(c / (1.0 - c)), dtype=last.bias.dtype))
+            last.bias.copy_(logit)
+        if self.outer is not None:
+            self.outer.initialise(logit)
 
     @property
     def inv_s(self) -> torch.Tensor:
@@ -187,11 +179,27 @@ class SDFField(nn.Module):
 
     def get_color(self, feature: torch.Tensor, normal: torch.Tensor, dirs: torch.Tensor) -> torch.Tensor:
         """View-dependent colour: the wound is wet and shiny, so colour sees direction and normal."""
-        return torch.sigmoid(self.color_net(torch.cat([feature, normal, _sh_deg2(dirs)], dim=-1)))
+        return torch.sigmoid(self.color_net(torch.cat([feature, normal, sh_deg2(dirs)], dim=-1)))
 
-    def get_background(self, dirs: torch.Tensor) -> torch.Tensor:
-        """Colour of what lies beyond the region of interest, by direction only."""
-        return torch.sigmoid(self.background(_sh_deg2(dirs)))
+    def get_background(self, dirs: torch.Tensor, origins: torch.Tensor | None = None,
+                       far: torch.Tensor | None = None, visible: torch.Tensor | None = None) -> torch.Tensor:
+        """Colour of what lies beyond the region of interest: the environment by direction,
+        behind the outer field (from ``far``, the rays' exit from the cube) when there is one.
+
+        ``visible`` (bool per ray) limits the outer field to rays the surface has not
+        absorbed: behind skin or an opaque object it would cost time and change nothing.
+        """
+        env = torch.sigmoid(self.background(sh_deg2(dirs)))
+        if self.outer is None:
+            return env
+        if visible is None:
+            rgb, transmittance = self.outer(origins, dirs, far)
+            return rgb + transmittance[:, None] * env
+        out = env.clone()
+        if bool(visible.any()):
+            rgb, transmittance = self.outer(origins[visible], dirs[visible], far[visible])
+            out[visible] = rgb + transmittance[:, None] * env[visible]
+        return out
 
     @torch.no_grad()
     def sdf_batched(self, x: torch.Tensor, chunk: int = 65536) -> torch.Tensor:

@@ -25,6 +25,7 @@ from .rendering import (
     composite_weights,
     march,
     neus_alpha,
+    ray_box,
 )
 from .sdf import SDFField
 from .semantic import SemanticHead, class_weights
@@ -32,6 +33,8 @@ from .semantic import SemanticHead, class_weights
 # Logit vector given to the part of a ray that leaves the region of interest unabsorbed:
 # whatever lies beyond the surface band is background.
 BACKGROUND_LOGIT = 10.0
+# A ray whose surface leaves less than this much light through shows no background.
+BACKGROUND_VISIBLE = 1e-2
 
 
 def pick_device(name: str = "auto") -> torch.device:
@@ -119,9 +122,9 @@ def render_rays_rgb(
     """
     samples = march(origins, dirs, grid, steps=steps, perturb=train)
     n = origins.shape[0]
-    bg = field.get_background(dirs)
+    far = ray_box(origins, dirs)[1]
     if samples.positions.shape[0] == 0:
-        return bg, torch.zeros(n, device=origins.device), samples
+        return field.get_background(dirs, origins, far), torch.zeros(n, device=origins.device), samples
     with torch.enable_grad():
         x = samples.positions.detach().requires_grad_(True)
         sdf, feature = field.get_sdf(x)
@@ -134,6 +137,7 @@ def render_rays_rgb(
     color = field.get_color(feature, normal, samples.dirs)
     rgb = accumulate(color, weights, samples.ray_index, n)
     opacity = accumulate_scalar(weights, samples.ray_index, n)
+    bg = field.get_background(dirs, origins, far, visible=(1.0 - opacity.detach()) > BACKGROUND_VISIBLE)
     rgb = rgb + (1.0 - opacity)[:, None] * bg
     return rgb, opacity, samples
 
@@ -166,7 +170,7 @@ def train_geometry(
     sched = torch.optim.lr_scheduler.LambdaLR(
         opt, lambda it: min(1.0, (it + 1) / 50) * gamma**it  # short warm-up, then exponential decay
     )
-    grid = OccupancyGrid(cfg.occupancy_resolution, device)
+    grid = OccupancyGrid(cfg.occupancy_resolution, device, margin=cfg.occupancy_margin, full_every=cfg.occupancy_full_every)
     n_rays = min(1024, cfg.max_rays)
     psnr_ema, spr_ema, occ = 0.0, 0.0, 1.0
     t0 = time.time()
@@ -208,7 +212,7 @@ def train_geometry(
             psnr_ema = psnr if it == 0 else 0.95 * psnr_ema + 0.05 * psnr
             spr_ema = spr if it == 0 else 0.95 * spr_ema + 0.05 * spr
             bar.update(task, advance=1, status=f"psnr {psnr_ema:5.2f} rays {n_rays} spr {spr_ema:4.1f} s {float(field.inv_s.detach()):6.0f}")
-    grid.update(field.sdf_batched, _band(cfg, field), jitter=False)
+    grid.update(field.sdf_batched, _band(cfg, field), jitter=False, full=True)
     field.eval()
     stats = GeometryStats(cfg.iterations, time.time() - t0, psnr_ema, spr_ema, float(field.inv_s.detach()), occ)
     return grid, stats
