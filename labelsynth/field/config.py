@@ -43,6 +43,8 @@ class GeometryConfig:
     occupancy_every: int = 25
     occupancy_band: float = 4.0  # band = occupancy_band / inv_s (NeuS sharpness), in unit-cube units
     occupancy_max_band: float = 0.08  # ...but never wider than this
+    occupancy_full_every: int = 4  # every k-th update evaluates the whole grid...
+    occupancy_margin: float = 0.1  # ...the others only cells whose last |sdf| was this close to the band
     levels_start: int = 4  # progressive hash levels: start with this many...
     levels_every: int = 100  # ...and add one every this many iterations
     sdf: SDFConfig = field(default_factory=SDFConfig)
