@@ -1,0 +1,83 @@
+"""Tiny captures of an object filmed all around, for tests of the field on any capture shape.
+
+An object (a box with a sphere on top, coloured by position with a procedural pattern) stands
+in front of a plain backdrop; cameras sit on a sphere around it at several elevations, as in
+the NeRF-synthetic layout. Everything is ray-cast with trimesh, so colour, masks and truth
+come from the same hits.
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import cv2
+import numpy as np
+import trimesh
+
+from labelsynth.cameras import Camera, look_at
+
+
+def object_mesh() -> trimesh.Trimesh:
+    box = trimesh.creation.box(extents=(0.9, 0.6, 0.5))
+    ball = trimesh.creation.icosphere(subdivisions=3, radius=0.32)
+    ball.apply_translation((0.1, 0.0, 0.45))
+    return trimesh.util.concatenate([box, ball])
+
+
+def _colour(points: np.ndarray) -> np.ndarray:
+    """A smooth, non-repeating pattern over the surface: enough texture to fix depth."""
+    x, y, z = points.T
+    r = 0.5 + 0.4 * np.sin(5.0 * x + 1.0) * np.cos(3.0 * z)
+    g = 0.45 + 0.35 * np.sin(4.0 * y + 2.0 * z)
+    b = 0.35 + 0.3 * np.cos(6.0 * x - 3.0 * y)
+    return np.clip(np.stack([r, g, b], -1), 0, 1)
+
+
+def orbit_cameras(n: int, size: int, radius: float = 2.2, elevations=(10.0, 35.0, 60.0)) -> list[Camera]:
+    """``n`` cameras on a sphere around the origin, azimuths interleaved over the elevations."""
+    f = 1.1 * size
+    cams = []
+    for i in range(n):
+        el = np.radians(elevations[i % len(elevations)])
+        az = 2 * np.pi * i / n
+        eye = radius * np.array([np.cos(el) * np.cos(az), np.cos(el) * np.sin(az), np.sin(el)])
+        cams.append(Camera(size, size, f, f, size / 2, size / 2, look_at(eye, np.zeros(3))))
+    return cams
+
+
+def render(mesh: trimesh.Trimesh, cam: Camera, backdrop: float) -> tuple[np.ndarray, np.ndarray]:
+    """(RGB uint8, object mask 0/1) of one view."""
+    o, d = cam.rays()
+    loc, ray, _ = mesh.ray.intersects_location(o, d, multiple_hits=False)
+    rgb = np.full((len(o), 3), backdrop, np.float64)
+    rgb[ray] = _colour(loc)
+    mask = np.zeros(len(o), np.uint8)
+    mask[ray] = 1
+    h, w = cam.height, cam.width
+    return (rgb.reshape(h, w, 3) * 255).round().astype(np.uint8), mask.reshape(h, w)
+
+
+def make_object_capture(root: Path, frames: int = 12, size: int = 48, annotated=(0, 6),
+                        backdrop: float = 1.0) -> tuple[Path, Path]:
+    """Write ROOT/capture (transforms.json, images/, annotations/, classes.json) and ROOT/truth."""
+    capture, truth = Path(root) / "capture", Path(root) / "truth"
+    for sub in (capture / "images", capture / "annotations", truth):
+        sub.mkdir(parents=True, exist_ok=True)
+    mesh = object_mesh()
+    entries = []
+    for i, cam in enumerate(orbit_cameras(frames, size)):
+        rgb, mask = render(mesh, cam, backdrop)
+        name = f"view_{i:02d}"
+        cv2.imwrite(str(capture / "images" / f"{name}.png"), cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR))
+        cv2.imwrite(str(truth / f"{name}.png"), mask)
+        if i in annotated:
+            cv2.imwrite(str(capture / "annotations" / f"{name}.png"), mask)
+        entries.append({"file_path": f"images/{name}.png", "transform_matrix": cam.c2w.tolist()})
+    (capture / "transforms.json").write_text(json.dumps({
+        "camera_model": "PINHOLE", "fl_x": 1.1 * size, "fl_y": 1.1 * size, "cx": size / 2, "cy": size / 2,
+        "w": size, "h": size, "frames": entries}))
+    (capture / "classes.json").write_text(json.dumps({"classes": [
+        {"id": 0, "name": "background", "color": [0, 0, 0]},
+        {"id": 1, "name": "object", "color": [255, 80, 40], "wound_bed": True}]}))
+    return capture, truth
