@@ -16,6 +16,7 @@ from .errors import ClassMapError
 
 IGNORE_ID = 255
 BACKGROUND_ID = 0
+CLASSES_FILE = "classes.json"  # a capture's optional class table
 
 
 @dataclass(frozen=True)
@@ -63,26 +64,51 @@ class ClassMap:
         return cls(DEFAULT_CLASSES)
 
     @classmethod
-    def from_json(cls, path: str | Path) -> "ClassMap":
-        path = Path(path)
+    def from_dict(cls, data: object, where: str = "class table", what: str = "class table") -> "ClassMap":
+        """The one parser of a class table: ``{"classes": [{"id", "name", "color"?, "wound_bed"?}, ...]}``
+        or the bare list, as ``to_json`` writes it (classes.json, labels.h5's ``classes_json``,
+        field.pt). A missing colour gets a stable fallback. ``where`` names the source and
+        ``what`` the kind of table in the one-line ``ClassMapError``."""
         try:
-            data = json.loads(path.read_text())
-            entries = data["classes"] if isinstance(data, dict) else data
+            entries = data["classes"] if isinstance(data, dict) else data  # type: ignore[index]
+            if not isinstance(entries, (list, tuple)):
+                raise TypeError("expected a list of classes")
             classes = tuple(
                 ClassInfo(
                     id=int(e["id"]),
                     name=str(e["name"]),
-                    color=tuple(int(v) for v in e.get("color", _fallback_color(int(e["id"])))),
+                    color=_color(e.get("color"), int(e["id"])),
                     wound_bed=bool(e.get("wound_bed", False)),
                 )
                 for e in entries
             )
-        except (OSError, json.JSONDecodeError, KeyError, TypeError, ValueError) as exc:
-            raise ClassMapError(f"{path}: not a valid classes.json ({exc})") from exc
+        except (KeyError, TypeError, ValueError, AttributeError) as exc:
+            raise ClassMapError(f"{where}: not a valid {what} ({exc})") from exc
         try:
             return cls(classes)
         except ClassMapError as exc:
-            raise ClassMapError(f"{path}: {exc}") from exc
+            raise ClassMapError(f"{where}: {exc}") from exc
+
+    @classmethod
+    def from_file(cls, path: str | Path) -> "ClassMap":
+        """A ``classes.json`` file (``from_dict``); errors name the file."""
+        path = Path(path)
+        try:
+            data = json.loads(path.read_text())
+        except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
+            raise ClassMapError(f"{path}: not a valid classes.json ({exc})") from exc
+        return cls.from_dict(data, str(path), CLASSES_FILE)
+
+    from_json = from_file  # the older name, kept for callers
+
+    @classmethod
+    def of_capture(cls, root: str | Path, fallback: "ClassMap | None" = None) -> "ClassMap":
+        """A capture's class table: ``ROOT/classes.json`` if present, else ``fallback`` (a
+        layout's own table, e.g. NeuS's background/object), else the default wound table."""
+        path = Path(root) / CLASSES_FILE
+        if path.is_file():
+            return cls.from_file(path)
+        return fallback or cls.default()
 
     def to_json(self) -> dict:
         return {
@@ -160,6 +186,15 @@ class ClassMap:
         """Class-id mask (H,W) -> RGB image (H,W,3); ignore pixels grey."""
         pal = np.asarray(self.palette(), dtype=np.uint8).reshape(256, 3)
         return pal[mask]
+
+
+def _color(value: object, class_id: int) -> tuple[int, int, int]:
+    if value is None:
+        return _fallback_color(class_id)
+    rgb = tuple(int(v) for v in value)  # type: ignore[union-attr]
+    if len(rgb) != 3 or not all(0 <= v <= 255 for v in rgb):
+        raise ValueError(f"colour of class {class_id} must be r,g,b in 0..255, got {list(rgb)}")
+    return rgb  # type: ignore[return-value]
 
 
 def _fallback_color(class_id: int) -> tuple[int, int, int]:

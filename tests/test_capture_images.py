@@ -1,4 +1,4 @@
-"""read_image: bit depths and channel layouts become (H,W,3) uint8 RGB; sizes are checked."""
+"""read_image, list_images, write_mask: bit depths and channel layouts become (H,W,3) uint8 RGB; sizes are checked."""
 
 from __future__ import annotations
 
@@ -54,3 +54,66 @@ def test_errors_name_the_file(tmp_path) -> None:
         read_image(tmp_path / "b.jpg")
     with pytest.raises(CaptureError, match=r"c\.png"):
         read_image(tmp_path / "c.png")
+
+
+def test_list_images_one_rule(tmp_path) -> None:
+    """The lister every command shares: PNG/JPEG of any suffix case, sorted, hidden files skipped,
+    duplicate stems and empty or missing folders are one-line errors naming the path."""
+    from labelsynth.capture import list_images
+
+    d = tmp_path / "images"
+    d.mkdir()
+    for name in ("b.PNG", "a.jpg", "c.jpeg", "._a.png", "notes.txt"):
+        (d / name).write_bytes(b"x")
+    (d / "sub.png").mkdir()
+    assert [p.name for p in list_images(d)] == ["a.jpg", "b.PNG", "c.jpeg"]
+    (d / "a.png").write_bytes(b"x")
+    with pytest.raises(CaptureError, match=r"a\.png: same stem as a\.jpg"):
+        list_images(d)
+    empty = tmp_path / "empty"
+    empty.mkdir()
+    with pytest.raises(CaptureError, match="empty: no PNG or JPEG images"):
+        list_images(empty)
+    with pytest.raises(CaptureError, match="nowhere: images folder not found"):
+        list_images(tmp_path / "nowhere")
+
+
+def test_capture_white_background_follows_the_loader(tmp_path) -> None:
+    """segment composites RGBA frames on the background load_capture would choose."""
+    import json
+
+    from labelsynth.capture.load import capture_white_background
+
+    assert capture_white_background(tmp_path) is False  # no poses yet: black
+    (tmp_path / "transforms.json").write_text(json.dumps({"camera_angle_x": 0.7, "frames": []}))
+    assert capture_white_background(tmp_path) is True  # Blender style
+    (tmp_path / "transforms.json").write_text(json.dumps({"camera_angle_x": 0.7, "white_background": False}))
+    assert capture_white_background(tmp_path) is False
+    (tmp_path / "transforms.json").write_text(json.dumps({"fl_x": 50, "frames": []}))
+    assert capture_white_background(tmp_path) is False
+
+
+def test_write_mask_grey_and_palette(tmp_path) -> None:
+    """One mask writer: greyscale ids (outputs) read back the same by OpenCV, PIL and read_mask;
+    the palette variant reads back as ids through read_mask."""
+    from PIL import Image
+
+    from labelsynth.capture import read_mask, write_mask
+    from labelsynth.classes import ClassMap
+
+    classes = ClassMap.default()
+    m = np.zeros((6, 7), np.uint8)
+    m[1:3, 2:5] = 2
+    m[5, :] = 255
+    grey = write_mask(tmp_path / "sub" / "g.png", m)
+    assert grey == tmp_path / "sub" / "g.png"
+    np.testing.assert_array_equal(cv2.imread(str(grey), cv2.IMREAD_UNCHANGED), m)
+    with Image.open(grey) as im:
+        assert im.mode == "L"
+    np.testing.assert_array_equal(read_mask(grey, (7, 6), classes), m)
+    pal = write_mask(tmp_path / "p.png", m, classes)
+    with Image.open(pal) as im:
+        assert im.mode == "P"
+    np.testing.assert_array_equal(read_mask(pal, (7, 6), classes), m)
+    with pytest.raises(ValueError, match="class table"):
+        write_mask(tmp_path / "x.png", m, palette=True)

@@ -1,14 +1,14 @@
 """Capture folders in: frames, cameras, images, masks, classes and the region of interest.
 
 ``load_capture`` is the entry point; ``check_capture`` decodes every input a run will read
-before it trains; ``read_image`` / ``read_mask`` / ``write_mask`` are the pixel readers and
-writer shared with the outputs; ``select_frames`` reads the ``annotated_frames`` spec.
+before it trains; ``list_images`` / ``read_image`` / ``read_mask`` / ``write_mask`` are the
+one lister, pixel readers and mask writer shared by every command and the outputs; ``select_frames`` reads the ``annotated_frames`` spec.
 Nothing here ever writes into a capture.
 """
 
 from ..errors import CaptureError, CheckError
 from .check import CheckReport, ExtraMask, check_capture
-from .images import read_image
+from .images import list_images, read_image
 from .load import load_capture, validate_capture
 from .masks import read_mask, write_mask
 from .model import Capture, Frame, SceneNormalization
@@ -24,6 +24,7 @@ __all__ = [
     "Frame",
     "SceneNormalization",
     "check_capture",
+    "list_images",
     "load_capture",
     "read_image",
     "read_mask",

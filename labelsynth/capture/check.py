@@ -17,7 +17,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import NamedTuple
 
-from ..classes import ClassMap
+from ..classes import CLASSES_FILE, ClassMap
 from ..errors import CaptureError, CheckError
 from . import images as _images
 from . import masks as _masks  # module lookups at call time: a patched reader is the one used
@@ -158,7 +158,7 @@ def compare_class_tables(a: ClassMap, a_name: str, b: ClassMap, b_name: str) -> 
 
 
 def _classes_source(capture: Capture) -> str:
-    path = capture.root / "classes.json"
+    path = capture.root / CLASSES_FILE
     return str(path) if path.is_file() else f"{capture.root} (default class table, no classes.json)"
 
 

@@ -1,8 +1,15 @@
-"""Reading frames as (H,W,3) uint8 RGB, whatever the file's bit depth or channel count.
+"""The one pixel reader and lister of frames: (H,W,3) uint8 RGB, whatever the file's bit depth
+or channel count, and the frames of an images folder.
 
 Images are read with OpenCV's ``IMREAD_UNCHANGED`` so that alpha survives (Blender scenes
 are RGBA) and EXIF orientation is *not* applied: poses from COLMAP and nerfstudio refer to
 the stored pixel grid, so rotating the pixels would break the cameras.
+
+Alpha policy: an RGBA frame is composited over its capture's background, white or black
+(``capture.load.capture_white_background``: what ``transforms.json`` says, white for
+Blender-style files, black otherwise). The capture loader's compositing is the reference:
+the field, the input check and the 2D segmenter (``segment``) all read frames through
+``read_image`` with that choice, so every consumer sees the same pixels.
 """
 
 from __future__ import annotations
@@ -15,6 +22,7 @@ import numpy as np
 from ..errors import CaptureError
 
 IMAGE_EXTENSIONS: tuple[str, ...] = (".png", ".jpg", ".jpeg", ".PNG", ".JPG", ".JPEG")
+IMAGE_SUFFIXES: tuple[str, ...] = (".png", ".jpg", ".jpeg")  # compared with the suffix lower-cased
 
 
 def header_size(path: str | Path, what: str = "image") -> tuple[int, int]:
@@ -32,6 +40,31 @@ def header_size(path: str | Path, what: str = "image") -> tuple[int, int]:
 def image_size(path: str | Path) -> tuple[int, int]:
     """(width, height) of an image from its header only (cheap: no pixel decoding)."""
     return header_size(path, "image")
+
+
+def list_images(folder: str | Path) -> list[Path]:
+    """The frames of an images folder, sorted by name: PNG or JPEG (any case of the suffix);
+    hidden files (``._frame.png`` from macOS, ``.DS_Store``) and other files are skipped.
+
+    One rule for every consumer (``segment``, ``poses``, the NeuS loader), so they agree on
+    what the frames are. A missing folder, a folder without images, or two images with the
+    same stem (masks are named by stem) is a one-line ``CaptureError`` naming the path.
+    """
+    folder = Path(folder)
+    if not folder.is_dir():
+        raise CaptureError(f"{folder}: images folder not found")
+    paths = sorted(
+        p for p in folder.iterdir()
+        if p.is_file() and not p.name.startswith(".") and p.suffix.lower() in IMAGE_SUFFIXES
+    )
+    if not paths:
+        raise CaptureError(f"{folder}: no PNG or JPEG images")
+    seen: dict[str, Path] = {}
+    for p in paths:
+        if p.stem in seen:
+            raise CaptureError(f"{p}: same stem as {seen[p.stem].name}; frames and masks are matched by stem")
+        seen[p.stem] = p
+    return paths
 
 
 def _to_uint8(img: np.ndarray, path: Path) -> np.ndarray:
@@ -57,7 +90,11 @@ def read_image(
     """
     path = Path(path)
     check_complete(path)
-    img = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+    try:  # np.fromfile + imdecode copes with non-ASCII paths where cv2.imread may not
+        data = np.fromfile(str(path), dtype=np.uint8)
+    except OSError:
+        data = np.zeros(0, dtype=np.uint8)
+    img = cv2.imdecode(data, cv2.IMREAD_UNCHANGED) if data.size else None
     if img is None:
         raise CaptureError(f"{path}: cannot read image ({_unreadable_reason(path)})")
     img = _to_uint8(img, path)
@@ -132,6 +169,22 @@ def _unreadable_reason(path: Path) -> str:
     except (ValueError, SyntaxError):
         return "not an image OpenCV can read"
     return "OpenCV cannot decode it"
+
+
+def write_image(path: str | Path, rgb: np.ndarray) -> Path:
+    """Write (H,W,3) uint8 RGB (or (H,W) grey) as PNG/JPEG by the suffix; one-line error naming the file."""
+    path = Path(path)
+    img = np.ascontiguousarray(rgb)
+    if img.ndim == 3:
+        img = cv2.cvtColor(img, cv2.COLOR_RGB2BGR)
+    ok, buf = cv2.imencode(path.suffix or ".png", img)
+    if not ok:
+        raise CaptureError(f"{path}: could not encode image")
+    try:
+        path.write_bytes(buf.tobytes())
+    except OSError as exc:
+        raise CaptureError(f"{path}: could not write image ({exc.strerror or exc})") from exc
+    return path
 
 
 def composite_alpha(rgba: np.ndarray, white_background: bool) -> np.ndarray:

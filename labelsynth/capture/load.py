@@ -16,10 +16,11 @@ benchmark scores).
 
 from __future__ import annotations
 
+import json
 import warnings
 from pathlib import Path
 
-from ..classes import ClassMap
+from ..classes import CLASSES_FILE, ClassMap
 from ..errors import CaptureError
 from .colmap import find_sparse_model, read_colmap
 from .images import image_size
@@ -28,7 +29,7 @@ from .model import Capture, Frame
 from .neus import find_neus, read_neus
 from .normalize import region_of_interest
 from .select import FrameSpec, select_frames
-from .transforms import PosedFrames, read_transforms
+from .transforms import PosedFrames, read_transforms, white_background_of
 
 TRANSFORMS_NAMES = ("transforms.json", "transforms_train.json")
 MASK_FOLDERS = ("annotations", "predictions")
@@ -62,9 +63,9 @@ def load_capture(
     _check_unique_names(posed.frames, root)
     posed.frames.sort(key=lambda f: f.name)  # deterministic, whatever order the file lists
 
-    classes_json = root / "classes.json"
+    classes_json = root / CLASSES_FILE
     if classes is None:
-        classes = ClassMap.from_json(classes_json) if classes_json.is_file() else posed.classes or ClassMap.default()
+        classes = ClassMap.of_capture(root, posed.classes)
     labelmap = root / "labelmap.txt"
     color_table = color_table_for(classes, labelmap if labelmap.is_file() else None)
 
@@ -108,6 +109,23 @@ def load_capture(
         source=posed.source,
         mask_kinds=dict(posed.mask_kinds),
     )
+
+
+def capture_white_background(path: str | Path) -> bool:
+    """Whether a capture's RGBA frames are composited on white (else black), decided as
+    ``load_capture`` decides it, but without poses: tools that read a capture's frames
+    before it has any (``segment``) see the same pixels as the field. Only the transforms
+    file is read; other pose sources (NeuS, COLMAP), a capture without poses and a transforms
+    file that cannot be read mean black."""
+    root = Path(path)
+    for name in TRANSFORMS_NAMES:
+        if (root / name).is_file():
+            try:
+                data = json.loads((root / name).read_text(encoding="utf-8"))
+            except (OSError, UnicodeDecodeError, json.JSONDecodeError):
+                return False  # load_capture reports a broken file; it is not this caller's to judge
+            return white_background_of(data) if isinstance(data, dict) else False
+    return False
 
 
 def _keep_annotations(frames: list[Frame], spec: FrameSpec, root: Path) -> None:

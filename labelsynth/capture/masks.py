@@ -4,7 +4,7 @@ Formats read (see DESIGN.md, "Capture folder"):
 
 - single-channel PNG of class ids (8 or 16 bit);
 - palette PNG: indices are kept when each used index carries its own class's colour (our
-  outputs, ``write_mask``); else, when the colours of every used index are class colours
+  palette outputs of ``write_mask``); else, when the colours of every used index are class colours
   (Pascal VOC, CVAT exports with their own index order) pixels are mapped *by colour*;
   otherwise the indices are taken as class ids. Index 255 is always ignore (VOC's void);
 - RGB(A) colour PNG, mapped through the colour table (``classes.json`` colours, overridden
@@ -249,9 +249,18 @@ def _from_color(rgb: np.ndarray, classes: ClassMap, table: ColorTable, path: Pat
 
 
 # --- writing ------------------------------------------------------------------------------
-def write_mask(path: str | Path, mask: np.ndarray, classes: ClassMap) -> None:
-    """Write (H,W) class ids as a single-channel palette PNG: the pixel values are the ids
-    (what training code reads) and the palette shows class colours in any image viewer."""
+def write_mask(
+    path: str | Path, mask: np.ndarray, classes: ClassMap | None = None, *, palette: bool | None = None
+) -> Path:
+    """The one writer of class-id masks: (H,W) ids -> an 8-bit PNG whose pixel values are the ids.
+
+    ``palette`` (default: when ``classes`` is given) writes a palette PNG whose palette shows
+    the class colours in any image viewer; ids come back through PIL and ``read_mask``, but
+    OpenCV expands palettes to colours. ``palette=False`` writes plain greyscale, which gives
+    the ids back with PIL and ``cv2.imread(..., IMREAD_UNCHANGED)`` alike: the outputs
+    (``OUT/masks``, ``segment``, ``synth``) use it. Ids are not checked against ``classes``
+    (callers that must, check first); the parent folder is created. Returns ``path``.
+    """
     from PIL import Image
 
     mask = np.asarray(mask)
@@ -261,8 +270,25 @@ def write_mask(path: str | Path, mask: np.ndarray, classes: ClassMap) -> None:
         if mask.size and (mask.min() < 0 or mask.max() > 255):
             raise ValueError("mask values must be in 0..255")
         mask = mask.astype(np.uint8)
+    if palette is None:
+        palette = classes is not None
+    if palette and classes is None:
+        raise ValueError("a palette mask needs the class table for its colours")
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    im = Image.frombytes("P", (mask.shape[1], mask.shape[0]), np.ascontiguousarray(mask).tobytes())
-    im.putpalette(classes.palette())
-    im.save(path, format="PNG")
+    mask = np.ascontiguousarray(mask)
+    if palette:
+        im = Image.frombytes("P", (mask.shape[1], mask.shape[0]), mask.tobytes())
+        im.putpalette(classes.palette())  # type: ignore[union-attr]
+        im.save(path, format="PNG")
+        return path
+    import cv2
+
+    ok, buf = cv2.imencode(".png", mask)
+    if not ok:  # pragma: no cover - cv2 always encodes uint8 2-D arrays
+        raise CaptureError(f"{path}: cannot encode mask")
+    try:
+        path.write_bytes(buf.tobytes())  # works for non-ASCII paths where cv2.imwrite may not
+    except OSError as exc:
+        raise CaptureError(f"{path}: cannot write mask ({exc.strerror or exc})") from exc
+    return path

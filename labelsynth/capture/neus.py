@@ -38,7 +38,7 @@ import numpy as np
 from ..cameras import Camera, w2c_cv_to_c2w_gl
 from ..classes import ClassInfo, ClassMap
 from ..errors import CaptureError
-from .images import IMAGE_EXTENSIONS, image_size
+from .images import image_size, list_images
 from .masks import MASK_EXTENSIONS
 from .model import Frame, SceneNormalization
 from .transforms import PosedFrames
@@ -65,9 +65,7 @@ def read_neus(npz_path: str | Path) -> PosedFrames:
     image_dir = next((root / d for d in IMAGE_FOLDERS if (root / d).is_dir()), None)
     if image_dir is None:
         raise CaptureError(f"{root}: {NPZ_NAME} but no image/ (or images/) folder with the frames")
-    images = _listed(image_dir, IMAGE_EXTENSIONS)
-    if not images:
-        raise CaptureError(f"{image_dir}: no PNG or JPEG images")
+    images = list_images(image_dir)
     n = len(images)
     where_images = f"{n} images in {image_dir.name}/"
 

@@ -74,10 +74,7 @@ def read_transforms(path: str | Path) -> PosedFrames:
     if not isinstance(frames_in, list) or not frames_in:
         raise CaptureError(f"{path}: missing or empty 'frames' list")
 
-    blender_style = "camera_angle_x" in data and not any(
-        "fl_x" in f for f in [data, *frames_in] if isinstance(f, dict)
-    )
-    white_background = bool(data.get("white_background", blender_style))
+    white_background = white_background_of(data)
 
     shared = {k: data[k] for k in INTRINSIC_KEYS if k in data}
     frames: list[Frame] = []
@@ -108,6 +105,16 @@ def read_transforms(path: str | Path) -> PosedFrames:
     points = _read_points(root, data.get("ply_file_path"), path)
     return PosedFrames(frames=frames, skipped=skipped, points=points,
                        white_background=white_background, source=path.name)
+
+
+def white_background_of(data: dict) -> bool:
+    """The background RGBA frames are composited on (module docstring): the file's
+    ``white_background`` if it says, else white for Blender-style files, else black."""
+    frames = data.get("frames") if isinstance(data.get("frames"), list) else []
+    blender_style = "camera_angle_x" in data and not any(
+        "fl_x" in f for f in [data, *frames] if isinstance(f, dict)
+    )
+    return bool(data.get("white_background", blender_style))
 
 
 def _stem(base: Path) -> str:
