@@ -36,14 +36,15 @@ from datetime import datetime, timezone
 from pathlib import Path
 from typing import Any
 
-import cv2
 import h5py
 import numpy as np
 import torch
 
 from . import __version__
 from .classes import IGNORE_ID, ClassInfo, ClassMap
+from .capture.masks import write_mask
 from .errors import LabelsynthError
+from .outdir import partial_path
 
 FORMAT = "labelsynth-labels"
 FORMAT_VERSION = 1
@@ -55,10 +56,6 @@ _RESERVED_ATTRS = {
 
 class ExportError(LabelsynthError, ValueError):
     """Output that cannot be written as asked (bad frame, wrong size, unknown class id)."""
-
-
-def _partial_path(path: Path) -> Path:
-    return path.with_name(path.name + ".partial")
 
 
 def _recipe_text(recipe: Any) -> str:
@@ -151,7 +148,7 @@ class LabelsWriter:
         if clash:
             raise ExportError(f"attributes {sorted(clash)} are set by labelsynth itself")
         self.path = Path(path)
-        self.partial_path = _partial_path(self.path)
+        self.partial_path = partial_path(self.path)
         self.n_frames = int(n_frames)
         self.classes = classes
         self.height = height
@@ -362,11 +359,7 @@ def _str(v: Any) -> str:
 def classes_from_attrs(attrs: Mapping[str, Any]) -> ClassMap:
     """Rebuild the ClassMap stored in a labels.h5 (exact table first, arrays as fallback)."""
     if "classes_json" in attrs:
-        data = json.loads(_str(attrs["classes_json"]))
-        return ClassMap(tuple(
-            ClassInfo(int(e["id"]), str(e["name"]), tuple(int(c) for c in e["color"]), bool(e.get("wound_bed", False)))
-            for e in data["classes"]
-        ))  # fmt: skip
+        return ClassMap.from_dict(json.loads(_str(attrs["classes_json"])), "labels.h5 classes_json")
     names = [_str(v) for v in attrs["class_names"]]
     ids = [int(v) for v in attrs["class_ids"]]
     colors = np.asarray(attrs["class_colors"]).reshape(-1, 3)
@@ -524,16 +517,10 @@ def write_masks_png(out_dir: str | Path, name: str, mask: np.ndarray, classes: C
     palette on a greyscale image. A plain greyscale PNG returns the ids with both
     ``np.array(PIL.Image.open(p))`` and ``cv2.imread(p, cv2.IMREAD_UNCHANGED)``. Use
     ``ClassMap.colorize`` for a colour view. ``classes`` (if given) validates the ids.
+    The file is written by ``capture.masks.write_mask``, the one mask writer.
     """
     what = f"mask {name!r}"
     mask = _as_mask(mask, what)
     if classes is not None:
         _check_mask_ids(mask, _valid_id_table(classes), what)
-    out_dir = Path(out_dir)
-    out_dir.mkdir(parents=True, exist_ok=True)
-    path = out_dir / f"{Path(name).stem}.png"
-    ok, buf = cv2.imencode(".png", np.ascontiguousarray(mask))
-    if not ok:
-        raise ExportError(f"{what}: PNG encoding failed")
-    path.write_bytes(buf.tobytes())  # works for non-ASCII paths where cv2.imwrite does not
-    return path
+    return write_mask(Path(out_dir) / f"{Path(name).stem}.png", mask, palette=False)

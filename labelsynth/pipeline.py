@@ -1,7 +1,7 @@
 """`labelsynth expand` as a library call: capture in, consistent masks and a dataset out.
 
 The output folder is built under ``OUT.partial`` and renamed to OUT only when everything is
-written, so an interrupted run never leaves an OUT that looks complete.
+written (``outdir.building``), so an interrupted run never leaves an OUT that looks complete.
 """
 
 from __future__ import annotations
@@ -34,6 +34,7 @@ from .field.training import (
     train_geometry,
     train_semantic,
 )
+from .outdir import building, check_out
 from .progress import console, track
 
 LABEL_MODES = ("annotations", "predictions", "both")
@@ -190,28 +191,6 @@ def fit_semantics(
     return vars(stats)
 
 
-def _check_out(out: Path, force: bool) -> None:
-    out = Path(out)
-    if out.exists() and any(out.iterdir()) and not force:
-        raise LabelsynthError(f"{out}: output folder exists and is not empty (use --force to replace it)")
-
-
-def _prepare_out(out: Path, force: bool) -> Path:
-    out = Path(out)
-    _check_out(out, force)
-    partial = out.with_name(out.name + ".partial")
-    if partial.exists():
-        shutil.rmtree(partial)
-    partial.mkdir(parents=True)
-    return partial
-
-
-def _finish_out(partial: Path, out: Path) -> None:
-    if out.exists():
-        shutil.rmtree(out)
-    partial.rename(out)
-
-
 def render_outputs(
     sem: SemanticField,
     capture: Capture,
@@ -271,12 +250,11 @@ def expand(
     mode = resolve_label_mode(capture, labels)
     rec = load_recipe(recipe, overrides)
     out = Path(out)
-    _check_out(out, force)
+    check_out(out, force)
     check = check_capture(capture, labels="both" if report else mode)
     check.raise_if_problems()
     dev = pick_device(device)
-    partial = _prepare_out(out, force)
-    try:
+    with building(out, force=force) as partial:
         if progress:
             console.print(f"[bold]labelsynth[/] {check.summary()}")
             console.print(f"[bold]labelsynth[/] {len(capture)} frames, labels={mode}, recipe={rec.name}, device={dev}")
@@ -312,10 +290,6 @@ def expand(
                 default=float,
             )
         )
-        _finish_out(partial, out)
-    except BaseException:
-        shutil.rmtree(partial, ignore_errors=True)
-        raise
     return ExpandResult(
         out=out,
         frames=capture.names,

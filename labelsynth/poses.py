@@ -19,10 +19,11 @@ from pathlib import Path
 import numpy as np
 
 from .cameras import w2c_cv_to_c2w_gl
+from .capture.images import list_images
 from .errors import LabelsynthError
+from .outdir import write_text_atomic
 from .progress import console
 
-IMAGE_EXTENSIONS = (".png", ".jpg", ".jpeg")
 EXHAUSTIVE_BELOW = 40  # frames; above this, sequential matching
 SEQUENTIAL_OVERLAP = 20
 
@@ -52,10 +53,6 @@ class PoseReport:
             shown = ", ".join(self.unregistered[:8]) + (" ..." if len(self.unregistered) > 8 else "")
             lines.append(f"not registered (left out of transforms.json): {shown}")
         return "\n".join(lines)
-
-
-def _list_images(images_dir: Path) -> list[str]:
-    return sorted(p.name for p in images_dir.iterdir() if p.is_file() and p.suffix.lower() in IMAGE_EXTENSIONS)
 
 
 def _resolve_output(capture: Path, out: Path | None) -> Path:
@@ -121,7 +118,7 @@ def estimate_poses(
     images_dir = capture / "images"
     if not images_dir.is_dir():
         raise LabelsynthError(f"{capture}: no images/ folder")
-    names = _list_images(images_dir)
+    names = [p.name for p in list_images(images_dir)]  # the frames segment and the loaders see
     if len(names) < 3:
         raise LabelsynthError(f"{images_dir}: SfM needs at least 3 images, found {len(names)}")
     target = _resolve_output(capture, out)
@@ -205,9 +202,7 @@ def _run_sfm(pycolmap, capture: Path, images_dir: Path, names: list[str], target
             ply = target.parent / "points3D.ply"
             rec.export_PLY(str(ply))
             data["ply_file_path"] = os.path.relpath(ply, target.parent)
-        tmp_target = target.with_name(f".{target.name}.partial")
-        tmp_target.write_text(json.dumps(data, indent=2))
-        os.replace(tmp_target, target)
+        write_text_atomic(target, json.dumps(data, indent=2))
 
     if unregistered:
         shown = ", ".join(unregistered[:8]) + (" ..." if len(unregistered) > 8 else "")

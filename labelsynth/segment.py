@@ -25,11 +25,14 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from .capture.images import list_images, read_image
+from .capture.load import capture_white_background
+from .capture.masks import write_mask
 from .classes import IGNORE_ID, ClassMap
 from .errors import LabelsynthError
+from .outdir import building
 from .progress import make_progress
 
-IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg")
 DEFAULT_INPUT_SIZE = (512, 512)  # (width, height)
 IMAGENET_MEAN = (0.485, 0.456, 0.406)
 IMAGENET_STD = (0.229, 0.224, 0.225)
@@ -101,49 +104,6 @@ def resolve_out_dir(capture: Path, out: Path | None, into_capture: bool) -> Path
     if out is None and not into_capture:
         raise SegmentError("say where the masks go: --out DIR, or --into-capture to write CAPTURE/predictions/")
     return Path(capture) / "predictions" if into_capture else Path(out)  # type: ignore[arg-type]
-
-
-def list_images(images_dir: Path) -> list[Path]:
-    """The frames of ``images_dir`` (*.png, *.jpg, *.jpeg, any case), sorted by name."""
-    images_dir = Path(images_dir)
-    if not images_dir.is_dir():
-        raise SegmentError(f"{images_dir}: images folder not found")
-    paths = sorted(p for p in images_dir.iterdir() if p.is_file() and p.suffix.lower() in IMAGE_SUFFIXES)
-    if not paths:
-        raise SegmentError(f"{images_dir}: no PNG or JPEG images")
-    seen: dict[str, Path] = {}
-    for p in paths:
-        if p.stem in seen:
-            raise SegmentError(f"{p}: same stem as {seen[p.stem].name}; masks are named by stem")
-        seen[p.stem] = p
-    return paths
-
-
-def read_rgb(path: Path) -> np.ndarray:
-    """An image file as (H, W, 3) uint8 RGB; grey is expanded, alpha dropped, 16-bit scaled."""
-    data = np.fromfile(str(path), dtype=np.uint8)  # np.fromfile + imdecode copes with non-ASCII paths
-    img = cv2.imdecode(data, cv2.IMREAD_UNCHANGED) if data.size else None
-    if img is None:
-        raise SegmentError(f"{path}: cannot read image")
-    if img.dtype == np.uint16:
-        img = (img.astype(np.float32) / 257.0 + 0.5).astype(np.uint8)
-    elif img.dtype != np.uint8:
-        raise SegmentError(f"{path}: unsupported image depth {img.dtype}")
-    if img.ndim == 2:
-        return cv2.cvtColor(img, cv2.COLOR_GRAY2RGB)
-    if img.shape[2] == 4:
-        return cv2.cvtColor(img, cv2.COLOR_BGRA2RGB)
-    if img.shape[2] == 1:
-        return cv2.cvtColor(img[:, :, 0], cv2.COLOR_GRAY2RGB)
-    return cv2.cvtColor(img, cv2.COLOR_BGR2RGB)
-
-
-def write_id_mask(path: Path, mask: np.ndarray) -> None:
-    """A plain 8-bit greyscale PNG: reads back as ids with cv2 IMREAD_UNCHANGED and as PIL 'L'."""
-    ok, buf = cv2.imencode(".png", np.ascontiguousarray(mask, dtype=np.uint8))
-    if not ok:  # pragma: no cover - cv2 always encodes uint8 2-D arrays
-        raise SegmentError(f"{path}: cannot encode mask")
-    Path(path).write_bytes(buf.tobytes())
 
 
 # --- the segmenter ------------------------------------------------------------------------
@@ -356,11 +316,6 @@ class SegmentReport:
         return line
 
 
-def _class_map_for(capture: Path) -> ClassMap:
-    path = capture / "classes.json"
-    return ClassMap.from_json(path) if path.is_file() else ClassMap.default()
-
-
 def segment_capture(
     capture: Path,
     model: Path,
@@ -375,34 +330,35 @@ def segment_capture(
 ) -> SegmentReport:
     """Segment every frame of CAPTURE/images with an ONNX model; write ``OUT_DIR/<stem>.png``.
 
-    ``overwrite=False`` refuses to replace masks already in ``out_dir`` (the CLI uses it to
+    Frames are read as the field reads them (``capture.images.read_image``: RGBA composited
+    over the capture's background), listed by ``capture.images.list_images``, and the masks
+    (greyscale class ids, ``capture.masks.write_mask``) are built in ``OUT_DIR.partial`` and
+    moved into OUT_DIR only when every frame is done (``outdir.building``, merge: other files
+    in OUT_DIR stay). ``overwrite=False`` refuses to replace masks already in ``out_dir`` (the CLI uses it to
     protect an existing CAPTURE/predictions/). The capture's images are only read.
     """
     capture, model, out_dir = Path(capture), Path(model), Path(out_dir)
     if batch_size < 1:
         raise SegmentError(f"--batch-size {batch_size}: must be at least 1")
     images = list_images(capture / "images")
-    classes = _class_map_for(capture)
+    classes = ClassMap.of_capture(capture)
+    white_background = capture_white_background(capture)  # RGBA frames: the field's pixels
     segmenter = OnnxSegmenter(model, device=device, input_size=input_size, id_map=id_map)
 
     targets = [out_dir / f"{p.stem}.png" for p in images]
     existing = sum(t.exists() for t in targets)
     if existing and not overwrite:
         raise SegmentError(f"{out_dir}: already holds {existing} of these masks; pass --force to replace them")
-    try:
-        out_dir.mkdir(parents=True, exist_ok=True)
-    except OSError as exc:
-        raise SegmentError(f"{out_dir}: cannot create output folder ({exc.strerror or exc})") from exc
 
     counts = np.zeros(256, dtype=np.int64)
     start = time.perf_counter()
-    with make_progress(progress) as bar:
+    with building(out_dir, merge=True) as partial, make_progress(progress) as bar:
         task = bar.add_task("segment", total=len(images), status="")
         for first in range(0, len(images), batch_size):
             paths = images[first : first + batch_size]
-            frames = [read_rgb(p) for p in paths]
+            frames = [read_image(p, white_background=white_background) for p in paths]
             for path, mask in zip(paths, segmenter.predict_batch(frames)):
-                write_id_mask(out_dir / f"{path.stem}.png", mask)
+                write_mask(partial / f"{path.stem}.png", mask)
                 counts += np.bincount(mask.ravel(), minlength=256)
             bar.update(task, advance=len(paths), status=paths[-1].name)
     seconds = time.perf_counter() - start

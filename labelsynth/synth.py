@@ -17,8 +17,6 @@ false blobs on skin), so that a multi-view method has something to fix.
 from __future__ import annotations
 
 import json
-import os
-import shutil
 import time
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
@@ -28,9 +26,12 @@ import cv2
 import numpy as np
 
 from .cameras import Camera, look_at
+from .capture.images import write_image
+from .capture.masks import write_mask
 from .capture.select import spread_indices
 from .classes import DEFAULT_CLASSES
 from .errors import LabelsynthError
+from .outdir import building
 from .progress import track
 
 BACKGROUND, GRANULATION, SLOUGH, NECROTIC, EPITHELIAL, UNKNOWN = 0, 1, 2, 3, 4, 5
@@ -1069,38 +1070,16 @@ def annotated_indices(frames: int, annotated: int) -> list[int]:
     return spread_indices(frames, annotated)
 
 
-def _write_png(path: Path, img: np.ndarray) -> None:
-    if img.ndim == 3:
-        img = cv2.cvtColor(img, cv2.COLOR_RGB2BGR)
-    if not cv2.imwrite(str(path), img):
-        raise LabelsynthError(f"{path}: could not write image")
-
-
-def _prepare_out(out: Path, force: bool) -> Path:
-    if out.exists():
-        if not out.is_dir():
-            raise LabelsynthError(f"{out}: exists and is not a folder")
-        if any(out.iterdir()) and not force:
-            raise LabelsynthError(f"{out}: exists and is not empty (use --force to replace it)")
-    out.parent.mkdir(parents=True, exist_ok=True)
-    tmp = out.parent / f".{out.name}.partial-{os.getpid()}"
-    if tmp.exists():
-        shutil.rmtree(tmp)
-    tmp.mkdir()
-    return tmp
-
-
 def synthesize(out: Path, cfg: SynthConfig | None = None, *, force: bool = False, progress: bool = True) -> SynthResult:
     """Write a synthetic capture (OUT/capture) and its exact truth (OUT/truth).
 
-    The folder is built beside OUT and renamed at the end, so an interrupted run never
-    leaves an OUT that looks complete.
+    The folder is built in OUT.partial and renamed at the end (``outdir.building``), so an
+    interrupted run never leaves an OUT that looks complete. Masks are greyscale class-id PNGs.
     """
     cfg = cfg or SynthConfig()
     out = Path(out)
     start = time.perf_counter()
-    tmp = _prepare_out(out, force)
-    try:
+    with building(out, force=force) as tmp:
         rng = np.random.default_rng([cfg.seed, 0])
         detail = int(np.clip(3.2 * max(cfg.width, cfg.height), 384, 2048))
         key = np.array([0.35, -0.45, 1.0])
@@ -1128,12 +1107,12 @@ def synthesize(out: Path, cfg: SynthConfig | None = None, *, force: bool = False
             cam, name = cams[i], names[i]
             rgb, truth, depth = scene.render(cam, lights)
             pred = predict_errors(truth, np.isfinite(depth), np.random.default_rng([cfg.seed, 1, i]), cfg.noise)
-            _write_png(cap / "images" / f"{name}.png", rgb)
-            _write_png(cap / "predictions" / f"{name}.png", pred)
-            _write_png(truth_dir / f"{name}.png", truth)
+            write_image(cap / "images" / f"{name}.png", rgb)
+            write_mask(cap / "predictions" / f"{name}.png", pred)
+            write_mask(truth_dir / f"{name}.png", truth)
             np.save(truth_dir / "depth" / f"{name}.npy", depth)
             if i in ann:
-                _write_png(cap / "annotations" / f"{name}.png", truth)
+                write_mask(cap / "annotations" / f"{name}.png", truth)
             frames_json.append({"file_path": f"images/{name}.png",
                                 "transform_matrix": [[float(v) for v in row] for row in cam.c2w]})
         c0 = cams[0]
@@ -1147,11 +1126,5 @@ def synthesize(out: Path, cfg: SynthConfig | None = None, *, force: bool = False
                 "annotated": annotated, "frames": names,
                 "classes": [{"id": c.id, "name": c.name} for c in DEFAULT_CLASSES]}
         (truth_dir / "scene.json").write_text(json.dumps(meta, indent=2))
-        if out.exists():
-            shutil.rmtree(out)
-        os.replace(tmp, out)
-    except BaseException:
-        shutil.rmtree(tmp, ignore_errors=True)
-        raise
     return SynthResult(capture_dir=out / "capture", truth_dir=out / "truth", num_frames=cfg.frames,
                        annotated=annotated, seconds=time.perf_counter() - start)

@@ -152,6 +152,40 @@ def test_masks_read_back_with_pil_as_ids(capture, models, tmp_path):
             np.testing.assert_array_equal(np.asarray(im), mask)
 
 
+def test_rgba_frames_are_seen_as_the_field_sees_them(models, tmp_path):
+    """Alpha is composited over the capture's background (capture.images.read_image), not
+    dropped: a fully transparent red frame is black to the segmenter, as to the field."""
+    root = tmp_path / "rgba"
+    (root / "images").mkdir(parents=True)
+    bgra = np.zeros((H, W, 4), np.uint8)
+    bgra[..., 2] = 255  # red under...
+    bgra[:, : W // 2, 3] = 0  # ...a transparent left half
+    bgra[:, W // 2 :, 3] = 255
+    cv2.imwrite(str(root / "images" / "f.png"), bgra)
+    out = tmp_path / "pred"
+    segment_capture(root, models["dynamic"], out, input_size=(W, H), device="cpu", progress=False)
+    mask = _read_masks(out)["f"]
+    assert (mask[:, : W // 2 - 2] == 0).all()  # black: background
+    assert (mask[:, W // 2 + 2 :] == 1).all()  # red: class 1
+
+
+def test_masks_land_all_at_once_and_keep_other_files(capture, models, tmp_path):
+    """OUT is assembled in OUT.partial: a failed run leaves OUT as it was; a finished one
+    replaces the masks and keeps other files there."""
+    out = tmp_path / "pred"
+    out.mkdir()
+    (out / "README.txt").write_text("mine")
+    (out / "frame_000.png").write_bytes(b"old")
+    with pytest.raises(LabelsynthError, match="wide.onnx"):  # fails at the first batch
+        segment_capture(capture, models["wide"], out, input_size=(W, H), device="cpu", progress=False)
+    assert sorted(p.name for p in out.iterdir()) == ["README.txt", "frame_000.png"]
+    assert not (tmp_path / "pred.partial").exists()
+    report = segment_capture(capture, models["dynamic"], out, input_size=(W, H), device="cpu", progress=False)
+    assert report.replaced == 1 and (out / "README.txt").read_text() == "mine"
+    assert sorted(_read_masks(out)) == ["frame_000", "frame_001", "frame_002"]
+    assert not (tmp_path / "pred.partial").exists()
+
+
 def test_static_input_size_and_batches(capture, models, tmp_path):
     """A fixed 32x32 model: frames are resized to it, logits (16x16) upsampled back to 40x30."""
     seg = OnnxSegmenter(models["static"], device="cpu")

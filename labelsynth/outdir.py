@@ -1,0 +1,97 @@
+"""Outputs that are either complete or absent: folders built in ``X.partial``, renamed at the end.
+
+Why: a run that is interrupted (Ctrl-C, a crash, a full disk) must never leave an ``X`` that
+looks finished. Every command that writes a folder (``expand``, ``synth``, ``segment``)
+builds it under ``X.partial`` beside ``X`` with ``building``; single files (``labels.h5``,
+``transforms.json``) are written to ``partial_path(X)`` and renamed the same way.
+
+A ``X.partial`` left by a killed run is removed when the next run starts.
+"""
+
+from __future__ import annotations
+
+import os
+import shutil
+from collections.abc import Iterator
+from contextlib import contextmanager
+from pathlib import Path
+
+from .errors import LabelsynthError
+
+PARTIAL_SUFFIX = ".partial"
+
+
+def partial_path(path: str | Path) -> Path:
+    """Where ``path`` is assembled before it is complete: ``path`` + ``.partial``, beside it."""
+    path = Path(path)
+    return path.with_name(path.name + PARTIAL_SUFFIX)
+
+
+def check_out(out: str | Path, force: bool = False) -> None:
+    """Refuse an output folder that exists and is not empty (unless ``force``), or that is a
+    file; one line naming the folder. Cheap: call it before any long work."""
+    out = Path(out)
+    if not out.exists():
+        return
+    if not out.is_dir():
+        raise LabelsynthError(f"{out}: exists and is not a folder")
+    if not force and any(out.iterdir()):
+        raise LabelsynthError(f"{out}: output folder exists and is not empty (use --force to replace it)")
+
+
+@contextmanager
+def building(out: str | Path, *, force: bool = False, merge: bool = False) -> Iterator[Path]:
+    """Yield ``OUT.partial`` (fresh and empty) to write into; on leaving the block normally it
+    becomes ``OUT``, on an exception (KeyboardInterrupt included) it is removed and ``OUT`` is
+    left as it was.
+
+    ``merge=False`` (``expand``, ``synth``): ``OUT`` must be empty or absent unless ``force``,
+    and is replaced as a whole. ``merge=True`` (``segment``, whose ``OUT`` may be a capture's
+    ``predictions/``): the finished files are moved into ``OUT`` one by one (each move is
+    atomic), replacing files of the same name and keeping the others.
+    """
+    out = Path(out)
+    if not merge:
+        check_out(out, force)
+    elif out.exists() and not out.is_dir():
+        raise LabelsynthError(f"{out}: exists and is not a folder")
+    partial = partial_path(out)
+    try:
+        if partial.exists():
+            shutil.rmtree(partial)
+        partial.mkdir(parents=True)
+    except OSError as exc:
+        raise LabelsynthError(f"{partial}: cannot create output folder ({exc.strerror or exc})") from exc
+    try:
+        yield partial
+        if merge and out.exists():
+            for item in sorted(partial.iterdir()):
+                target = out / item.name
+                if target.is_dir() and not item.is_dir():
+                    raise LabelsynthError(f"{target}: is a folder, cannot replace it with a file")
+                if target.is_dir():
+                    shutil.rmtree(target)
+                os.replace(item, target)
+            partial.rmdir()
+        else:
+            if out.exists():
+                shutil.rmtree(out)
+            os.replace(partial, out)
+    except BaseException:
+        shutil.rmtree(partial, ignore_errors=True)
+        raise
+
+
+def write_text_atomic(path: str | Path, text: str) -> Path:
+    """Write a text file through ``partial_path(path)`` and rename it, so that readers never see
+    half a file; the parent folder is created."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = partial_path(path)
+    try:
+        tmp.write_text(text, encoding="utf-8")
+        os.replace(tmp, path)
+    except BaseException:
+        tmp.unlink(missing_ok=True)
+        raise
+    return path
