@@ -9,6 +9,7 @@ Samples are packed: flat tensors plus the index of the ray each sample belongs t
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Protocol
 
 import torch
 from torch.nn import functional as F
@@ -161,3 +162,37 @@ def accumulate(values: torch.Tensor, weights: torch.Tensor, ray_index: torch.Ten
 def accumulate_scalar(weights: torch.Tensor, ray_index: torch.Tensor, num_rays: int) -> torch.Tensor:
     out = torch.zeros(num_rays, device=weights.device, dtype=weights.dtype)
     return out.index_add(0, ray_index, weights)
+
+
+class _SDF(Protocol):
+    inv_s: torch.Tensor
+
+    def get_sdf(self, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]: ...
+
+
+@dataclass
+class RayWeights:
+    """What one pass of the SDF over packed samples gives: the NeuS weights and what they came from."""
+
+    sdf: torch.Tensor  # (S,)
+    feature: torch.Tensor  # (S, F) geometry feature (what the colour and semantic heads read)
+    gradient: torch.Tensor  # (S, 3) d sdf / dx, first order, detached from the parameters
+    weights: torch.Tensor  # (S,) T_i * alpha_i
+
+
+def neus_weights(field: _SDF, samples: PackedSamples, cos_anneal_ratio: float, *, train: bool) -> RayWeights:
+    """The one place NeuS weights along packed rays are computed (RGB rendering, the semantic bake).
+
+    The SDF gradient is first order and detached: second derivatives are paid only on the
+    eikonal subset of a training step, which is where most of the time went when every
+    sample carried them. With ``train`` the sdf and feature keep their graph (the colour
+    loss reaches the SDF through them); otherwise they are detached.
+    """
+    with torch.enable_grad():
+        x = samples.positions.detach().requires_grad_(True)
+        sdf, feature = field.get_sdf(x)
+        (grad,) = torch.autograd.grad(sdf.sum(), x, retain_graph=train)
+    if not train:
+        sdf, feature = sdf.detach(), feature.detach()
+    alpha = neus_alpha(sdf, grad, samples.dirs, samples.deltas, field.inv_s, cos_anneal_ratio)
+    return RayWeights(sdf, feature, grad, composite_weights(alpha, samples.ray_index, samples.num_rays))

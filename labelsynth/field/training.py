@@ -22,9 +22,8 @@ from .rendering import (
     OccupancyGrid,
     accumulate,
     accumulate_scalar,
-    composite_weights,
     march,
-    neus_alpha,
+    neus_weights,
     ray_box,
 )
 from .sdf import SDFField
@@ -114,29 +113,16 @@ def render_rays_rgb(
     steps: int,
     train: bool,
 ):
-    """NeuS colour rendering of a batch of rays; returns rgb, opacity and the samples.
-
-    The SDF gradient (for the NeuS cosine and the colour head's normal) is first order and
-    detached: second derivatives are paid only on the eikonal subset (see train_geometry),
-    which is where most of the time went when every sample carried them.
-    """
+    """NeuS colour rendering of a batch of rays; returns rgb, opacity and the samples."""
     samples = march(origins, dirs, grid, steps=steps, perturb=train)
     n = origins.shape[0]
     far = ray_box(origins, dirs)[1]
     if samples.positions.shape[0] == 0:
         return field.get_background(dirs, origins, far), torch.zeros(n, device=origins.device), samples
-    with torch.enable_grad():
-        x = samples.positions.detach().requires_grad_(True)
-        sdf, feature = field.get_sdf(x)
-        (grad,) = torch.autograd.grad(sdf.sum(), x, retain_graph=train)
-    if not train:
-        sdf, feature = sdf.detach(), feature.detach()
-    normal = F.normalize(grad, dim=-1)
-    alpha = neus_alpha(sdf, grad, samples.dirs, samples.deltas, field.inv_s, cos_anneal_ratio)
-    weights = composite_weights(alpha, samples.ray_index, n)
-    color = field.get_color(feature, normal, samples.dirs)
-    rgb = accumulate(color, weights, samples.ray_index, n)
-    opacity = accumulate_scalar(weights, samples.ray_index, n)
+    along = neus_weights(field, samples, cos_anneal_ratio, train=train)
+    color = field.get_color(along.feature, F.normalize(along.gradient, dim=-1), samples.dirs)
+    rgb = accumulate(color, along.weights, samples.ray_index, n)
+    opacity = accumulate_scalar(along.weights, samples.ray_index, n)
     bg = field.get_background(dirs, origins, far, visible=(1.0 - opacity.detach()) > BACKGROUND_VISIBLE)
     rgb = rgb + (1.0 - opacity)[:, None] * bg
     return rgb, opacity, samples
@@ -300,9 +286,8 @@ def sample_frozen(
         feat = torch.zeros(n, k, fdim, device=device)
         wk = torch.zeros(n, k, device=device)
         if samples.positions.shape[0] > 0:
-            sdf, feature, grad = field.sdf_and_gradient(samples.positions, create_graph=False)
-            alpha = neus_alpha(sdf, grad, samples.dirs, samples.deltas, field.inv_s, 1.0)
-            w = composite_weights(alpha, samples.ray_index, n)
+            along = neus_weights(field, samples, 1.0, train=False)
+            feature, w = along.feature, along.weights
             # Rank samples within each ray by weight: sort by (ray, -w) and take the first k.
             order = torch.argsort(samples.ray_index.double() * 4.0 - w.double().clamp(0, 1))
             ray_sorted = samples.ray_index[order]
