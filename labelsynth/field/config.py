@@ -2,6 +2,11 @@
 
 A recipe is a tree of dataclasses; YAML keys that do not exist, or values of the wrong
 type, are a one-line RecipeError so a typo never silently falls back to a default.
+
+The dataclasses below are the one source of the defaults: ``default.yaml`` holds only its
+name and description, and every other recipe lists only what differs from them
+(``tests/test_recipes.py`` enforces both). Values that must be one of a few names are
+``typing.Literal`` types, checked at load by ``_check_choices``.
 """
 
 from __future__ import annotations
@@ -9,13 +14,13 @@ from __future__ import annotations
 import dataclasses
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, get_type_hints
+from typing import Any, Literal, get_args, get_origin, get_type_hints
 
 import yaml
 
 from ..errors import RecipeError
 from .sdf import SDFConfig
-from .semantic import CLASS_WEIGHTINGS, DECISION_RULES
+from .semantic import ClassWeighting, DecisionRule
 
 RECIPE_DIR = Path(__file__).resolve().parent.parent / "recipes"
 
@@ -26,7 +31,7 @@ class GeometryConfig:
 
     iterations: int = 1200
     train_scale: float = 0.25  # rays come from images resized by this factor
-    target_samples: int = 32768  # samples per batch: the ray count adapts to hit it
+    target_samples: int = 16384  # samples per batch: the ray count adapts to hit it
     max_rays: int = 4096
     lr: float = 1e-2
     lr_final_factor: float = 0.1
@@ -47,6 +52,11 @@ class GeometryConfig:
     occupancy_margin: float = 0.1  # ...the others only cells whose last |sdf| was this close to the band
     levels_start: int = 4  # progressive hash levels: start with this many...
     levels_every: int = 100  # ...and add one every this many iterations
+    # optimiser (Adam over hash table, MLPs and the NeuS variance): the instant-ngp settings
+    adam_beta1: float = 0.9
+    adam_beta2: float = 0.99
+    adam_eps: float = 1e-15
+    warmup_iterations: int = 50  # learning rate ramps linearly over these, then decays exponentially
     sdf: SDFConfig = field(default_factory=SDFConfig)
 
 
@@ -73,9 +83,14 @@ class SemanticConfig:
     expert_weight: float = 4.0  # with --labels both: weight of annotated frames vs predictions
     # auto | paper | equal-tissue | uniform | inverse-sqrt | inverse (semantic.class_weights);
     # auto = equal-tissue from expert annotations alone, uniform when predictions teach
-    class_weighting: str = "auto"
+    class_weighting: ClassWeighting = "auto"
     background_weight: float = 0.1  # these two: the paper scheme only
     tissue_weight_floor: float = 0.1  # w_y = floor + (1 - floor) * N_y / sum N (paper: 0.1 / 0.9)
+    # optimiser: Adam, learning rate cosine-annealed from lr to lr * lr_final_factor
+    adam_beta1: float = 0.9
+    adam_beta2: float = 0.99
+    adam_eps: float = 1e-15
+    lr_final_factor: float = 0.05
 
 
 @dataclass
@@ -83,7 +98,7 @@ class RenderConfig:
     mesh_resolution: int = 256  # marching-cubes grid over the unit cube
     subdivide: int = 1  # midpoint subdivisions of the mesh before ray casting (4x faces each)
     # wound-bed-first | argmax: how class probabilities become a label (semantic.decide_labels)
-    decision: str = "wound-bed-first"
+    decision: DecisionRule = "wound-bed-first"
     per_pixel: bool = False  # evaluate the head at every pixel's hit (slow) instead of at vertices
     chunk: int = 65536
 
@@ -129,7 +144,7 @@ def _coerce(tp, value, where: str):
             return tp(value)
         except (TypeError, ValueError):
             raise RecipeError(f"{where}: expected a {tp.__name__}, got {value!r}") from None
-    if tp is str:
+    if tp is str or get_origin(tp) is Literal:
         return str(value)
     return value
 
@@ -168,14 +183,31 @@ def load_recipe(name_or_path: str | Path = "default", overrides: list[str] | Non
     return recipe
 
 
-def _check_choices(recipe: Recipe, where: str) -> None:
-    """Values that must be one of a few names: a typo is an error at load, not mid-run."""
-    if recipe.semantic.class_weighting not in CLASS_WEIGHTINGS:
-        raise RecipeError(
-            f"{where}.semantic.class_weighting: '{recipe.semantic.class_weighting}' is not one of "
-            f"{', '.join(CLASS_WEIGHTINGS)}"
-        )
-    if recipe.render.decision not in DECISION_RULES:
-        raise RecipeError(
-            f"{where}.render.decision: '{recipe.render.decision}' is not one of {', '.join(DECISION_RULES)}"
-        )
+# Choices of fields typed plain ``str`` in modules this one does not own (field.sdf): checked
+# here like a Literal until their types say it themselves (a Literal type wins over this table).
+_STR_CHOICES: dict[tuple[str, str], tuple[str, ...]] = {
+    ("SDFConfig", "init_shape"): ("auto", "sphere", "plane"),
+    ("SDFConfig", "background"): ("env", "outer"),
+}
+
+
+def choices_of(cls: type, name: str) -> tuple[str, ...] | None:
+    """The allowed values of field ``name`` of recipe dataclass ``cls``: its Literal's
+    arguments, else ``_STR_CHOICES``, else None (any value of its type)."""
+    tp = get_type_hints(cls).get(name)
+    if get_origin(tp) is Literal:
+        return tuple(get_args(tp))
+    return _STR_CHOICES.get((cls.__name__, name))
+
+
+def _check_choices(node: Any, where: str) -> None:
+    """Values that must be one of a few names: a typo is an error at load, not mid-run.
+    Walks the recipe tree; one line naming the key, the value and the choices."""
+    for f in dataclasses.fields(node):
+        value = getattr(node, f.name)
+        if dataclasses.is_dataclass(value):
+            _check_choices(value, f"{where}.{f.name}")
+            continue
+        allowed = choices_of(type(node), f.name)
+        if allowed is not None and value not in allowed:
+            raise RecipeError(f"{where}.{f.name}: '{value}' is not one of {', '.join(allowed)}")

@@ -6,6 +6,8 @@ Semantics are view-independent (Semantic-NeRF): the head reads the frozen geomet
 
 from __future__ import annotations
 
+from typing import Literal, get_args
+
 import numpy as np
 import torch
 from torch import nn
@@ -45,7 +47,8 @@ class SemanticHead(nn.Module):
 
 
 # "auto" is resolved per run by training.resolve_class_weighting (which labels are taught)
-CLASS_WEIGHTINGS = ("auto", "paper", "equal-tissue", "uniform", "inverse-sqrt", "inverse")
+ClassWeighting = Literal["auto", "paper", "equal-tissue", "uniform", "inverse-sqrt", "inverse"]
+CLASS_WEIGHTINGS: tuple[str, ...] = get_args(ClassWeighting)
 
 
 def class_weights(
@@ -108,7 +111,8 @@ def wound_bed_probability(logits: torch.Tensor, classes: ClassMap) -> torch.Tens
     return torch.softmax(wound_bed_logits(logits, classes), dim=-1)[..., 1]
 
 
-DECISION_RULES = ("wound-bed-first", "argmax")
+DecisionRule = Literal["wound-bed-first", "argmax"]
+DECISION_RULES: tuple[str, ...] = get_args(DecisionRule)
 
 
 def decide_labels(probs: np.ndarray, classes: ClassMap, rule: str = "wound-bed-first") -> np.ndarray:

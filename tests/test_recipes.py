@@ -1,0 +1,116 @@
+"""Recipes: the dataclasses are the one source of the defaults; every recipe loads, uses only
+known keys, and lists only what differs; choices are checked at load."""
+
+from __future__ import annotations
+
+import dataclasses
+import os
+from pathlib import Path
+
+import pytest
+import yaml
+
+from labelsynth.errors import RecipeError
+from labelsynth.field.config import RECIPE_DIR, Recipe, available_recipes, choices_of, load_recipe
+
+REPO = Path(__file__).resolve().parent.parent
+
+
+def _yaml(name: str) -> dict:
+    return yaml.safe_load((RECIPE_DIR / f"{name}.yaml").read_text()) or {}
+
+
+def _walk_keys(data: dict, cls: type, where: str) -> list[str]:
+    """Every key of ``data`` as a dotted path, checked to exist in the dataclass ``cls``."""
+    names = {f.name for f in dataclasses.fields(cls)}
+    keys = []
+    for key, value in data.items():
+        assert key in names, f"{where}: unknown key {key!r}"
+        default = getattr(cls(), key)
+        if dataclasses.is_dataclass(default):
+            assert isinstance(value, dict), f"{where}.{key}: expected a section"
+            keys += _walk_keys(value, type(default), f"{where}.{key}")
+        else:
+            keys.append(f"{where}.{key}")
+    return keys
+
+
+def _get(obj, dotted: str):
+    for part in dotted.split("."):
+        obj = getattr(obj, part)
+    return obj
+
+
+def test_every_recipe_loads_with_known_keys() -> None:
+    names = available_recipes()
+    assert {"default", "fast", "quality", "paper"} <= set(names)
+    for name in names:
+        data = _yaml(name)
+        _walk_keys(data, Recipe, name)  # every key exists
+        r = load_recipe(name)
+        assert r.name == name and r.description
+
+
+def test_default_yaml_is_the_dataclass_defaults() -> None:
+    data = _yaml("default")
+    assert set(data) <= {"name", "description"}, "default.yaml must not repeat values: the dataclasses hold them"
+    r = load_recipe("default")
+    assert r.to_dict() == Recipe(name="default", description=r.description).to_dict()
+    assert r.geometry.target_samples == 16384  # what default.yaml ran before the defaults moved
+
+
+@pytest.mark.parametrize("name", ["fast", "quality", "paper"])
+def test_other_recipes_list_only_what_differs(name: str) -> None:
+    defaults = Recipe()
+    for key in _walk_keys(_yaml(name), Recipe, name):
+        path = key.split(".", 1)[1]
+        if path in ("name", "description"):
+            continue
+        assert _get(load_recipe(name), path) != _get(defaults, path), f"{key} repeats the default"
+
+
+def test_optimiser_settings_are_recipe_values() -> None:
+    r = load_recipe("default")
+    for section in (r.geometry, r.semantic):
+        assert (section.adam_beta1, section.adam_beta2, section.adam_eps) == (0.9, 0.99, 1e-15)
+    assert r.geometry.warmup_iterations == 50 and r.semantic.lr_final_factor == 0.05
+    r = load_recipe("fast", ["geometry.adam_eps=1e-8", "semantic.adam_beta2=0.999"])
+    assert r.geometry.adam_eps == 1e-8 and r.semantic.adam_beta2 == 0.999
+
+
+@pytest.mark.parametrize(
+    "override, key",
+    [
+        ("semantic.class_weighting=balanced", "semantic.class_weighting"),
+        ("render.decision=vote", "render.decision"),
+        ("geometry.sdf.init_shape=cube", "geometry.sdf.init_shape"),
+        ("geometry.sdf.background=none", "geometry.sdf.background"),
+    ],
+)
+def test_bad_choice_is_one_line(override: str, key: str) -> None:
+    with pytest.raises(RecipeError) as info:
+        load_recipe("fast", [override])
+    msg = str(info.value)
+    assert msg.startswith(f"fast.yaml.{key}: '") and "is not one of" in msg and "\n" not in msg
+
+
+def test_choices_come_from_the_types() -> None:
+    from labelsynth.field.config import RenderConfig, SemanticConfig
+    from labelsynth.field.semantic import CLASS_WEIGHTINGS, DECISION_RULES
+
+    assert choices_of(SemanticConfig, "class_weighting") == CLASS_WEIGHTINGS
+    assert choices_of(RenderConfig, "decision") == DECISION_RULES
+    assert choices_of(SemanticConfig, "lr") is None
+    for value in CLASS_WEIGHTINGS:
+        assert load_recipe("fast", [f"semantic.class_weighting={value}"]).semantic.class_weighting == value
+
+
+def test_top_level_recipes_folder(monkeypatch) -> None:
+    """README: the recipes are also reachable as ``recipes/`` from the repository root."""
+    top = REPO / "recipes"
+    if not top.exists():
+        pytest.skip("not a source checkout")
+    assert top.resolve() == RECIPE_DIR.resolve()
+    assert all(os.path.exists(p) for p in top.iterdir())  # no broken links inside
+    monkeypatch.chdir(REPO)
+    assert load_recipe("recipes/fast.yaml").to_dict() == load_recipe("fast").to_dict()
