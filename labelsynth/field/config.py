@@ -185,19 +185,15 @@ def load_recipe(name_or_path: str | Path = "default", overrides: list[str] | Non
 
 # Choices of fields typed plain ``str`` in modules this one does not own (field.sdf): checked
 # here like a Literal until their types say it themselves (a Literal type wins over this table).
-_STR_CHOICES: dict[tuple[str, str], tuple[str, ...]] = {
-    ("SDFConfig", "init_shape"): ("auto", "sphere", "plane"),
-    ("SDFConfig", "background"): ("env", "outer"),
-}
 
 
 def choices_of(cls: type, name: str) -> tuple[str, ...] | None:
     """The allowed values of field ``name`` of recipe dataclass ``cls``: its Literal's
-    arguments, else ``_STR_CHOICES``, else None (any value of its type)."""
+    arguments, else None (any value of its type)."""
     tp = get_type_hints(cls).get(name)
     if get_origin(tp) is Literal:
         return tuple(get_args(tp))
-    return _STR_CHOICES.get((cls.__name__, name))
+    return None
 
 
 def _check_choices(node: Any, where: str) -> None:

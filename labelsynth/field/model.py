@@ -11,7 +11,7 @@ import trimesh
 
 from ..cameras import Camera
 from ..capture.model import SceneNormalization
-from ..classes import ClassInfo, ClassMap
+from ..classes import ClassMap
 from ..surface import SurfaceCaster, extract_mesh
 from .config import Recipe, _build
 from .rendering import OccupancyGrid
@@ -142,7 +142,7 @@ class SemanticField:
         recipe = _build(Recipe, state["recipe"], str(path))
         if not any(k.startswith("outer.") for k in state["sdf"]):
             recipe.geometry.sdf.background = "env"  # files from before the outer background
-        classes = ClassMap(tuple(ClassInfo(c["id"], c["name"], tuple(c["color"]), c["wound_bed"]) for c in state["classes"]["classes"]))
+        classes = ClassMap.from_dict(state["classes"], str(path), "class table of the field")
         sdf = SDFField(recipe.geometry.sdf).to(device)
         sdf_state = state["sdf"]
         sdf_state.setdefault("inv_s_floor", torch.tensor(1.0))  # files from before the floor existed

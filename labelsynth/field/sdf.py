@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
+from typing import Literal
 
 import torch
 from torch import nn
@@ -27,12 +28,12 @@ class SDFConfig:
     hidden: int = 64
     feature_dim: int = 15  # geometry feature handed to the colour and semantic heads
     color_hidden: int = 64
-    init_shape: str = "auto"  # auto | sphere | plane (see SDFField.initialise_shape)
+    init_shape: Literal["auto", "sphere", "plane"] = "auto"  # see SDFField.initialise_shape
     init_radius: float = 0.5  # sphere initialisation: radius in the unit cube
     init_variance: float = 0.3  # inv_s = exp(10 * variance)
     # env: a colour per direction beyond the cube; outer: also a NeRF over contracted space
     # outside it (field.background), for a table or a room close behind the object
-    background: str = "outer"
+    background: Literal["env", "outer"] = "outer"
     outer: OuterConfig = field(default_factory=OuterConfig)
 
 

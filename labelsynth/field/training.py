@@ -151,10 +151,10 @@ def train_geometry(
         {"params": [p for n, p in field.named_parameters() if n != "encoding.table" and n != "variance"], "lr": cfg.lr},
         {"params": [field.variance], "lr": cfg.lr},
     ]
-    opt = torch.optim.Adam(params, betas=(0.9, 0.99), eps=1e-15)
+    opt = torch.optim.Adam(params, betas=(cfg.adam_beta1, cfg.adam_beta2), eps=cfg.adam_eps)
     gamma = cfg.lr_final_factor ** (1.0 / max(cfg.iterations, 1))
     sched = torch.optim.lr_scheduler.LambdaLR(
-        opt, lambda it: min(1.0, (it + 1) / 50) * gamma**it  # short warm-up, then exponential decay
+        opt, lambda it: min(1.0, (it + 1) / max(cfg.warmup_iterations, 1)) * gamma**it  # warm-up, then exponential decay
     )
     grid = OccupancyGrid(cfg.occupancy_resolution, device, margin=cfg.occupancy_margin, full_every=cfg.occupancy_full_every)
     n_rays = min(1024, cfg.max_rays)
@@ -423,10 +423,10 @@ def train_semantic(
     scheme = resolve_class_weighting(cfg.class_weighting, baked.expert_only)
     cw = class_weights(baked.class_counts, classes, cfg.background_weight, cfg.tissue_weight_floor, scheme)
     class_w = torch.from_numpy(cw).to(device)
-    opt = torch.optim.Adam(head.parameters(), lr=cfg.lr, betas=(0.9, 0.99), eps=1e-15)
+    opt = torch.optim.Adam(head.parameters(), lr=cfg.lr, betas=(cfg.adam_beta1, cfg.adam_beta2), eps=cfg.adam_eps)
     batch = min(cfg.rays_per_batch, len(baked))
     iterations = semantic_iterations(cfg, len(baked))
-    sched = torch.optim.lr_scheduler.CosineAnnealingLR(opt, T_max=max(iterations, 1), eta_min=cfg.lr * 0.05)
+    sched = torch.optim.lr_scheduler.CosineAnnealingLR(opt, T_max=max(iterations, 1), eta_min=cfg.lr * cfg.lr_final_factor)
     bg_idx = classes.background_index
     head.train()
     loss_ema = 0.0
