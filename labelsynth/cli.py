@@ -128,7 +128,7 @@ def report(
     loo: bool = typer.Option(True, "--loo/--no-loo", help="Refit the semantic stage without each annotated frame (the honest test)."),
 ) -> None:
     """Rebuild OUT/report.json, OUT/report.html and the labelled mesh from a finished expand."""
-    from .report import rebuild_report
+    from .pipeline import rebuild_report
 
     rep = rebuild_report(out, device=device, mesh_format=mesh_format, mm_per_unit=mm_per_unit, loo=loo)
     flagged = rep["summary"]["flagged"]

@@ -9,6 +9,7 @@ from __future__ import annotations
 import json
 import shutil
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -265,13 +266,9 @@ def expand(
         masks = render_outputs(sem, capture, partial, labels=mode, recipe_name=rec.name, progress=progress)
         stats["seconds"]["render"] = time.time() - t0
         if report:
-            from .report import build_report
-
             t0 = time.time()
-            build_report(
-                partial, capture, sem, masks, mode, progress=progress, mesh_format=mesh_format,
-                mm_per_unit=mm_per_unit, seed=seed,
-            )
+            _report(partial, capture, sem, masks, mode, seed=seed, progress=progress, mesh_format=mesh_format,
+                    mm_per_unit=mm_per_unit)
             stats["seconds"]["report"] = time.time() - t0
         (partial / "run.json").write_text(
             json.dumps(
@@ -299,6 +296,80 @@ def expand(
         geometry=stats["geometry"],
         semantic=stats["semantic"],
     )
+
+
+
+def refit_without(sem: SemanticField, capture: Capture, mode: str, seed: int = 0) -> Callable[[str], None]:
+    """The report's leave-one-view-out: retrain the head without one frame, geometry frozen.
+
+    Reuses the full fit's baked rays minus that frame's when they are there (no re-sampling),
+    else bakes the remaining frames' labels afresh.
+    """
+
+    def refit(name: str) -> None:
+        if sem.baked is not None:
+            fit_semantics(sem, [], exclude={name}, baked=sem.baked, seed=seed, progress=False)
+        else:
+            fit_semantics(sem, labelled_frames(capture, mode, sem.recipe, exclude={name}), seed=seed, progress=False)
+
+    return refit
+
+
+def _report(out: Path, capture: Capture, sem: SemanticField, masks: dict[str, np.ndarray], mode: str, *,
+            seed: int, progress: bool, **kwargs) -> dict:
+    """build_report with what it needs from the orchestration: the masks that taught, a refit."""
+    from .report import build_report
+
+    taught = {f.name: f.mask for f in labelled_frames(capture, mode, sem.recipe)}
+    return build_report(out, capture, sem, masks, mode, taught=taught, refit=refit_without(sem, capture, mode, seed),
+                        progress=progress, **kwargs)
+
+
+def rebuild_report(
+    out_dir: str | Path,
+    *,
+    device: str = "auto",
+    progress: bool = True,
+    mesh_format: str | None = None,
+    mm_per_unit: float | None = None,
+    loo: bool = True,
+) -> dict:
+    """Write report.json/html (and the mesh) of a finished OUT again, from OUT/field.pt and OUT/masks.
+
+    Without ``mesh_format`` / ``mm_per_unit`` the previous report's choices are kept.
+    """
+    from .report import REPORT_JSON, read_field_masks
+
+    out_dir = Path(out_dir)
+    run_path, field_path = out_dir / "run.json", out_dir / "field.pt"
+    for p in (run_path, field_path):
+        if not p.is_file():
+            raise LabelsynthError(f"{p}: not found (is {out_dir} the output of labelsynth expand?)")
+    try:
+        run = json.loads(run_path.read_text())
+        capture_dir, mode = run["capture"], run["labels"]
+    except (json.JSONDecodeError, KeyError, TypeError) as exc:
+        raise LabelsynthError(f"{run_path}: not a labelsynth run file ({exc})") from exc
+    previous = {}
+    if (out_dir / REPORT_JSON).is_file():
+        try:
+            previous = json.loads((out_dir / REPORT_JSON).read_text()).get("summary", {}) or {}
+        except json.JSONDecodeError:
+            previous = {}
+    prev_mesh = previous.get("mesh") or {}
+    if mesh_format is None:
+        had_glb = "mesh.glb" in prev_mesh.get("files", []) or (out_dir / "mesh.glb").exists()
+        mesh_format = "glb" if had_glb else "ply"
+    if mm_per_unit is None:
+        mm_per_unit = (prev_mesh.get("areas") or {}).get("mm_per_unit")
+    capture = load_capture(capture_dir, annotated_frames=run.get("annotated_frames"))  # as the run chose
+    sem = SemanticField.load(field_path, pick_device(device))
+    # The report reads every mask and, for flagged frames, images: check them all before the
+    # leave-one-out refits, and that the capture's classes are still the field's.
+    check_capture(capture, labels="both", class_tables={str(field_path): sem.classes}).raise_if_problems()
+    masks = read_field_masks(out_dir, capture.names)
+    return _report(out_dir, capture, sem, masks, mode, seed=int(run.get("seed", 0)), progress=progress,
+                   mesh_format=mesh_format, mm_per_unit=mm_per_unit, loo=loo)
 
 
 def score_against_truth(out: str | Path, truth_dir: str | Path, classes, exclude: set[str] = frozenset()):

@@ -225,7 +225,7 @@ def test_bench_checks_truths_with_the_capture(tmp_path) -> None:
 def test_report_rebuild_checks_inputs_and_the_field_classes(tmp_path, monkeypatch) -> None:
     """`labelsynth report` on an OUT whose capture changed: every problem before any refit."""
     from labelsynth.field.model import SemanticField
-    from labelsynth.report import rebuild_report
+    from labelsynth.pipeline import rebuild_report
 
     root = _with_masks(tmp_path / "cap")
     (root / "classes.json").write_text(json.dumps({"classes": [

@@ -28,7 +28,8 @@ from labelsynth.capture import load_capture
 from labelsynth.export import write_masks_png
 from labelsynth.field.config import Recipe
 from labelsynth.pipeline import labelled_frames
-from labelsynth.report import build_report, rebuild_report
+from labelsynth.pipeline import rebuild_report
+from labelsynth.report import build_report
 from labelsynth.report.consistency import Check, flag_frames, pairwise_consistency
 from labelsynth.surface import SurfaceCaster
 
@@ -140,7 +141,8 @@ def run_plane_report(tmp_path: Path, corrupt=None, mode: str = "annotations", **
     out = tmp_path / "out"
     out.mkdir()
     refit = lambda name: field.fit(labelled_frames(capture, mode, field.recipe, exclude={name}))  # noqa: E731
-    report = build_report(out, capture, field, masks, mode, progress=False, refit=refit, **kw)
+    taught = {f.name: f.mask for f in labelled_frames(capture, mode, field.recipe)}
+    report = build_report(out, capture, field, masks, mode, taught=taught, refit=refit, progress=False, **kw)
     return out, report, field, capture, masks
 
 
@@ -303,17 +305,11 @@ def test_rebuild_report_and_cli(tmp_path, monkeypatch):
         return fresh
 
     monkeypatch.setattr(field_model.SemanticField, "load", staticmethod(fake_load))
-    import labelsynth.report.build as build_mod
+    import labelsynth.pipeline as pipeline_mod
 
-    def refit_for(sem, cap):
-        return lambda name: sem.fit(labelled_frames(cap, "annotations", sem.recipe, exclude={name}))
-
-    real_build = build_mod.build_report
-
-    def build_with_plane_refit(out_dir, cap, sem, masks_, mode, **kw):
-        return real_build(out_dir, cap, sem, masks_, mode, refit=refit_for(sem, cap), **kw)
-
-    monkeypatch.setattr(build_mod, "build_report", build_with_plane_refit)
+    # the plane stand-in refits itself; the orchestration hands the report that callable
+    monkeypatch.setattr(pipeline_mod, "refit_without", lambda sem, cap, mode, seed=0: (
+        lambda name: sem.fit(labelled_frames(cap, mode, sem.recipe, exclude={name}))))
     again = rebuild_report(out, device="cpu", progress=False)
     for f in ("report.json", "report.html", "mesh.ply"):
         assert (out / f).is_file()

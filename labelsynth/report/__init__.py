@@ -1,9 +1,10 @@
 """The consistency report of an expand run: which input masks disagree, where, and by how much.
 
-``build_report`` is called by ``pipeline.expand``; ``rebuild_report`` redoes it for a
-finished output folder (``labelsynth report OUT``).
+``build_report`` receives what it needs from the caller (the field, the masks it learnt
+from, a callable that refits it without one frame), so this package imports no
+orchestration; ``pipeline.expand`` and ``pipeline.rebuild_report`` call it.
 """
 
-from .build import build_report, read_field_masks, rebuild_report
+from .build import REPORT_JSON, build_report, read_field_masks
 
-__all__ = ["build_report", "read_field_masks", "rebuild_report"]
+__all__ = ["REPORT_JSON", "build_report", "read_field_masks"]

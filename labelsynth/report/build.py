@@ -48,15 +48,6 @@ def _inputs(capture: Capture, mode: str) -> tuple[dict[str, np.ndarray], dict[st
     return ann, pred
 
 
-def _training_input(name: str, mode: str, ann: dict, pred: dict) -> np.ndarray | None:
-    """The mask of a frame the field learnt from (mirrors ``pipeline.labelled_frames``)."""
-    if mode in ("annotations", "both") and name in ann:
-        return ann[name]
-    if mode in ("predictions", "both") and name in pred:
-        return pred[name]
-    return None
-
-
 def _median_over_present(frames: list[dict], field: str, key: str) -> float | None:
     vals = [f[field][key] for f in frames if f.get(field) and key in f.get("_present", ())]
     return float(np.median(vals)) if vals else None
@@ -69,20 +60,22 @@ def build_report(
     masks: dict[str, np.ndarray],
     mode: str,
     *,
+    taught: dict[str, np.ndarray],
+    refit: Callable[[str], None] | None = None,
     progress: bool = True,
     mesh_format: str | None = "ply",
     mm_per_unit: float | None = None,
     loo: bool = True,
-    seed: int = 0,
-    refit: Callable[[str], None] | None = None,
 ) -> dict:
     """Write OUT/report.json, OUT/report.html and OUT/mesh.ply (+ .glb); return the report.
 
-    ``masks`` are the field's masks by frame name (what expand wrote to OUT/masks).
-    ``mesh_format=None`` skips the mesh (and its areas). ``loo=False`` skips the
-    leave-one-view-out refits (then annotated frames are judged by agreement only).
-    ``refit(name)`` retrains ``sem.head`` without frame ``name``; the default refits the
-    semantic stage with ``pipeline.fit_semantics`` on frozen geometry.
+    ``masks`` are the field's masks by frame name (what expand wrote to OUT/masks);
+    ``taught`` the masks the field learnt from, by frame name (the caller's rule decides
+    which: ``pipeline.labelled_frames``). ``refit(name)`` retrains ``sem.head`` without
+    frame ``name`` (needed for the leave-one-view-out; the caller supplies it, so the report
+    knows nothing of how a field is fitted). ``mesh_format=None`` skips the mesh (and its
+    areas). ``loo=False`` skips the leave-one-view-out refits (then annotated frames are
+    judged by agreement only).
     """
     t0 = time.time()
     out_dir = Path(out_dir)
@@ -123,17 +116,8 @@ def build_report(
     # 2. leave-one-view-out for the annotated frames
     loo_masks: dict[str, np.ndarray] = {}
     if loo and ann:
-        from ..pipeline import fit_semantics, labelled_frames
-
         if refit is None:
-            def refit(name: str) -> None:
-                if sem.baked is not None:  # the rays of the full fit, minus this frame's: no re-sampling
-                    fit_semantics(sem, [], exclude={name}, baked=sem.baked, seed=seed, progress=False)
-                else:
-                    frames = labelled_frames(capture, mode, sem.recipe, exclude={name})
-                    fit_semantics(sem, frames, seed=seed, progress=False)
-
-        taught = [n for n in names if _training_input(n, mode, ann, pred) is not None]
+            raise ValueError("build_report: the leave-one-view-out needs a refit callable")
         candidates = [n for n in names if n in ann and any(t != n for t in taught)]  # someone else left to learn from
         loo_masks = leave_one_out(sem, capture, candidates, refit, progress=progress)
     for f in frames:
@@ -142,11 +126,11 @@ def build_report(
             f["loo_dice"] = None if m is None else agreement(ann[f["name"]], m, classes)
 
     # 3. cross-view consistency of the inputs the field learnt from
-    views = [n for n in names if _training_input(n, mode, ann, pred) is not None]
+    views = [n for n in names if n in taught]
     cams = capture.unit_cameras()
     index = {n: i for i, n in enumerate(names)}
     pairwise = pairwise_consistency(
-        sem.caster(), [cams[index[n]] for n in views], [_training_input(n, mode, ann, pred) for n in views],
+        sem.caster(), [cams[index[n]] for n in views], [taught[n] for n in views],
         classes, progress=progress,
     ) if views else []
 
@@ -222,52 +206,3 @@ def read_field_masks(out_dir: str | Path, names: list[str]) -> dict[str, np.ndar
             raise LabelsynthError(f"{path}: missing or not a single-channel class-id mask")
         masks[name] = m
     return masks
-
-
-def rebuild_report(
-    out_dir: str | Path,
-    *,
-    device: str = "auto",
-    progress: bool = True,
-    mesh_format: str | None = None,
-    mm_per_unit: float | None = None,
-    loo: bool = True,
-) -> dict:
-    """Write report.json/html (and the mesh) of a finished OUT again, from OUT/field.pt and OUT/masks.
-
-    Without ``mesh_format`` / ``mm_per_unit`` the previous report's choices are kept.
-    """
-    from ..capture import check_capture, load_capture
-    from ..field.model import SemanticField
-    from ..field.training import pick_device
-
-    out_dir = Path(out_dir)
-    run_path, field_path = out_dir / "run.json", out_dir / "field.pt"
-    for p in (run_path, field_path):
-        if not p.is_file():
-            raise LabelsynthError(f"{p}: not found (is {out_dir} the output of labelsynth expand?)")
-    try:
-        run = json.loads(run_path.read_text())
-        capture_dir, mode = run["capture"], run["labels"]
-    except (json.JSONDecodeError, KeyError, TypeError) as exc:
-        raise LabelsynthError(f"{run_path}: not a labelsynth run file ({exc})") from exc
-    previous = {}
-    if (out_dir / REPORT_JSON).is_file():
-        try:
-            previous = json.loads((out_dir / REPORT_JSON).read_text()).get("summary", {}) or {}
-        except json.JSONDecodeError:
-            previous = {}
-    prev_mesh = previous.get("mesh") or {}
-    if mesh_format is None:
-        had_glb = "mesh.glb" in prev_mesh.get("files", []) or (out_dir / "mesh.glb").exists()
-        mesh_format = "glb" if had_glb else "ply"
-    if mm_per_unit is None:
-        mm_per_unit = (prev_mesh.get("areas") or {}).get("mm_per_unit")
-    capture = load_capture(capture_dir, annotated_frames=run.get("annotated_frames"))  # as the run chose
-    sem = SemanticField.load(field_path, pick_device(device))
-    # The report reads every mask and, for flagged frames, images: check them all before the
-    # leave-one-out refits, and that the capture's classes are still the field's.
-    check_capture(capture, labels="both", class_tables={str(field_path): sem.classes}).raise_if_problems()
-    masks = read_field_masks(out_dir, capture.names)
-    return build_report(out_dir, capture, sem, masks, mode, progress=progress, mesh_format=mesh_format,
-                        mm_per_unit=mm_per_unit, loo=loo, seed=int(run.get("seed", 0)))
