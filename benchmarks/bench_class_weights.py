@@ -14,13 +14,13 @@ from __future__ import annotations
 import argparse
 import time
 
-from labelsynth.bench import load_truths
 from labelsynth.capture import load_capture
-from labelsynth.field.config import load_recipe
-from labelsynth.field.semantic import DECISION_RULES
-from labelsynth.field.training import pick_device
-from labelsynth.metrics import score_frames
+from labelsynth.device import pick_device
+from labelsynth.evaluation.bench import load_truths
+from labelsynth.evaluation.metrics import score_frames
 from labelsynth.pipeline import fit_geometry, fit_semantics, labelled_frames
+from labelsynth.recipe import load_recipe
+from labelsynth.semantics.head import DECISION_RULES
 
 
 def main() -> None:

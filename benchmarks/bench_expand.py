@@ -47,7 +47,7 @@ def main() -> None:
         return
 
     from labelsynth.capture import load_capture
-    from labelsynth.metrics import score_frames
+    from labelsynth.evaluation.metrics import score_frames
     from labelsynth.pipeline import expand, score_against_truth
 
     out = args.out or args.capture.parent / f"out-{args.recipe}-{args.labels}"

@@ -40,7 +40,7 @@ def synth_case(kind: str, root: Path, frames: int, width: int, height: int) -> P
     """The synthetic case folder, made once (``labelsynth synth`` writes capture/ and truth/)."""
     folder = root / f"synth-{kind}"
     if not (folder / "capture" / "transforms.json").is_file():
-        from labelsynth.synth import SynthConfig, synthesize
+        from labelsynth.evaluation.synth import SynthConfig, synthesize
 
         cfg = SynthConfig(frames=frames, width=width, height=height, **({"layout": "all-around"} if kind == "around" else {}))
         synthesize(folder, cfg, force=True, progress=False)
@@ -55,7 +55,7 @@ def run_case(name: str, folder: Path, out: Path, recipe: str, overrides: list[st
 
     from labelsynth.capture import load_capture
     from labelsynth.capture.masks import read_mask
-    from labelsynth.metrics import Counts
+    from labelsynth.evaluation.metrics import Counts
     from labelsynth.pipeline import expand, score_against_truth
 
     capture, truth = folder / "capture", folder / "truth"

@@ -1,8 +1,8 @@
 """Reproduce the shape of the paper's Tables 1 and 2 on a synthetic capture.
 
 Synthesises a capture (default: 50 frames at 640x480, 4 annotated, as in the paper's setting),
-runs ``labelsynth.bench.run_bench`` on it and prints the tables, the wall time and the peak
-memory. A small smoke run:
+runs ``labelsynth.evaluation.bench.run_bench`` on it and prints the tables, the wall time and
+the peak memory. A small smoke run:
 
     python benchmarks/bench_paper_tables.py --frames 8 --width 160 --height 120 --recipe fast
 
@@ -18,8 +18,8 @@ import tempfile
 import time
 from pathlib import Path
 
-from labelsynth.bench import bench_markdown, run_bench
-from labelsynth.synth import SynthConfig, synthesize
+from labelsynth.evaluation.bench import bench_markdown, run_bench
+from labelsynth.evaluation.synth import SynthConfig, synthesize
 
 
 def main(argv: list[str] | None = None) -> int:

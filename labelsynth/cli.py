@@ -65,7 +65,7 @@ def synth(
     force: bool = typer.Option(False, help="Replace OUT if it exists."),
 ) -> None:
     """Make a synthetic wound capture with exact truth for every frame."""
-    from .synth import SynthConfig, synthesize
+    from .evaluation.synth import SynthConfig, synthesize
 
     cfg = SynthConfig(frames=frames, annotated=annotated, width=width, height=height, noise=noise, seed=seed,
                       layout=layout)
@@ -84,7 +84,7 @@ def poses(
     matching: str = typer.Option("auto", help="auto | sequential | exhaustive"),
 ) -> None:
     """Estimate camera poses with pycolmap structure-from-motion and write transforms.json."""
-    from .poses import estimate_poses
+    from .capture.poses import estimate_poses
 
     report = estimate_poses(capture, out=out, force=force, matching=matching)
     typer.echo(report.summary())
@@ -165,7 +165,7 @@ def segment(
     force: bool = typer.Option(False, help="With --into-capture: replace existing predictions."),
 ) -> None:
     """Run a 2D ONNX segmenter over every frame (the "2D" baseline) and write class-id masks."""
-    from .segment import resolve_out_dir, segment_capture
+    from .evaluation.segment import resolve_out_dir, segment_capture
 
     out_dir = resolve_out_dir(capture, out, into_capture)
     report = segment_capture(
@@ -196,7 +196,7 @@ def bench(
     ),
 ) -> None:
     """Paper Tables 1 and 2: 2D, 3D/2D and the field under each perturbation, scored against --truth."""
-    from .bench import bench_markdown, run_bench
+    from .evaluation.bench import bench_markdown, run_bench
 
     result = run_bench(
         capture, truth, out, perturbations=perturb, methods=methods, recipe=recipe, device=device,

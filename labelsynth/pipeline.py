@@ -20,23 +20,22 @@ import yaml
 from . import __version__
 from .capture import check_capture, load_capture
 from .capture.model import Capture
+from .device import pick_device
 from .errors import LabelsynthError
 from .export import LabelsWriter, write_masks_png
-from .field.config import Recipe, load_recipe
-from .field.model import SemanticField
-from .field.sdf import SDFField
-from .field.training import (
-    BakedRays,
-    LabelledFrame,
-    RayBank,
-    bake_semantic_rays,
-    make_semantic_head,
-    pick_device,
-    train_geometry,
-    train_semantic,
-)
+from .geometry.sdf import SDFField
+from .geometry.training import RayBank, train_geometry
 from .outdir import building, check_out
 from .progress import console, track
+from .recipe import Recipe, load_recipe
+from .render.field import SemanticField
+from .semantics.training import (
+    BakedRays,
+    LabelledFrame,
+    bake_semantic_rays,
+    make_semantic_head,
+    train_semantic,
+)
 
 LABEL_MODES = ("annotations", "predictions", "both")
 FIELD_FILE = "field.pt"
@@ -379,7 +378,7 @@ def score_against_truth(out: str | Path, truth_dir: str | Path, classes, exclude
     give class ids (OpenCV would turn a palette PNG into colours).
     """
     from .capture.masks import read_mask
-    from .metrics import score_frames
+    from .evaluation.metrics import score_frames
 
     out, truth_dir = Path(out), Path(truth_dir)
     names = sorted(p.stem for p in (out / "masks").glob("*.png") if p.stem not in exclude)
@@ -405,7 +404,7 @@ def demo(
     progress: bool = True,
 ) -> str:
     """Synthesise a capture, expand it from its annotations, and score it against the truth."""
-    from .synth import SynthConfig, synthesize
+    from .evaluation.synth import SynthConfig, synthesize
 
     out = Path(out)
     synth_dir = out / "synthetic"

@@ -43,8 +43,8 @@ class TinyRun:
 
 @pytest.fixture(scope="session")
 def tiny_expanded(tmp_path_factory) -> TinyRun:
+    from labelsynth.evaluation.synth import SynthConfig, synthesize
     from labelsynth.pipeline import expand
-    from labelsynth.synth import SynthConfig, synthesize
 
     root = tmp_path_factory.mktemp("tiny_expanded")
     syn = synthesize(root / "syn", SynthConfig(frames=8, annotated=4, width=96, height=72, seed=3), progress=False)

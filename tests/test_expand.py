@@ -16,10 +16,10 @@ import torch
 from labelsynth.capture import load_capture
 from labelsynth.classes import ClassInfo, ClassMap
 from labelsynth.errors import LabelsynthError
-from labelsynth.field.model import SemanticField
-from labelsynth.field.training import LabelledFrame
-from labelsynth.metrics import score_frames
+from labelsynth.evaluation.metrics import score_frames
 from labelsynth.pipeline import expand, fit_semantics
+from labelsynth.render.field import SemanticField
+from labelsynth.semantics.training import LabelledFrame
 
 # All tests using the shared tiny run go to one xdist worker, so it is fitted once.
 pytestmark = pytest.mark.xdist_group("tiny_expanded")
@@ -73,15 +73,6 @@ def test_outputs_follow_the_contract(tiny_expanded):
     assert after == run.capture_bytes  # nothing in the capture folder changed
 
 
-def test_the_saved_field_re_renders_without_refitting(tiny_expanded):
-    run = tiny_expanded
-    cap = load_capture(run.capture_dir)
-    sem = SemanticField.load(run.out / "field.pt", torch.device("cpu"))
-    again = sem.render(cap.unit_cameras()[0]).mask
-    saved = cv2.imread(str(run.out / "masks" / f"{cap.frames[0].name}.png"), cv2.IMREAD_UNCHANGED)
-    assert (again == saved).mean() > 0.999
-
-
 def test_existing_output_is_refused_and_interrupted_runs_leave_nothing(tiny_expanded, tmp_path, monkeypatch):
     run = tiny_expanded
     with pytest.raises(LabelsynthError, match="exists"):
@@ -108,15 +99,3 @@ def test_bad_label_mode_is_a_clear_error(tiny_expanded, tmp_path):
         expand(capture, tmp_path / "o", labels="predictions", progress=False)
     with pytest.raises(LabelsynthError, match="--labels must be one of"):
         expand(tiny_expanded.capture_dir, tmp_path / "o", labels="everything", progress=False)
-
-
-def test_a_field_saved_before_the_outer_background_still_loads(tiny_expanded, tmp_path):
-    run = tiny_expanded
-    state = torch.load(run.out / "field.pt", weights_only=False)
-    state["sdf"] = {k: v for k, v in state["sdf"].items() if not k.startswith("outer.")}
-    del state["recipe"]["geometry"]["sdf"]["background"], state["recipe"]["geometry"]["sdf"]["outer"]
-    torch.save(state, tmp_path / "old.pt")
-    sem = SemanticField.load(tmp_path / "old.pt", torch.device("cpu"))
-    assert sem.sdf.outer is None and sem.recipe.geometry.sdf.background == "env"
-    cam = load_capture(run.capture_dir).unit_cameras()[0]
-    assert sem.render(cam).mask.shape == (cam.height, cam.width)

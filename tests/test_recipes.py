@@ -11,7 +11,7 @@ import pytest
 import yaml
 
 from labelsynth.errors import RecipeError
-from labelsynth.field.config import RECIPE_DIR, Recipe, available_recipes, choices_of, load_recipe
+from labelsynth.recipe import RECIPE_DIR, Recipe, available_recipes, choices_of, load_recipe
 
 REPO = Path(__file__).resolve().parent.parent
 
@@ -95,8 +95,8 @@ def test_bad_choice_is_one_line(override: str, key: str) -> None:
 
 
 def test_choices_come_from_the_types() -> None:
-    from labelsynth.field.config import RenderConfig, SemanticConfig
-    from labelsynth.field.semantic import CLASS_WEIGHTINGS, DECISION_RULES
+    from labelsynth.recipe import RenderConfig, SemanticConfig
+    from labelsynth.semantics.head import CLASS_WEIGHTINGS, DECISION_RULES
 
     assert choices_of(SemanticConfig, "class_weighting") == CLASS_WEIGHTINGS
     assert choices_of(RenderConfig, "decision") == DECISION_RULES
@@ -114,3 +114,19 @@ def test_top_level_recipes_folder(monkeypatch) -> None:
     assert all(os.path.exists(p) for p in top.iterdir())  # no broken links inside
     monkeypatch.chdir(REPO)
     assert load_recipe("recipes/fast.yaml").to_dict() == load_recipe("fast").to_dict()
+
+
+def test_recipes_load_and_reject_typos():
+    for name in ("default", "fast", "quality", "paper"):
+        r = load_recipe(name)
+        assert r.geometry.iterations > 0 and r.semantic.dropout == pytest.approx(0.5)
+    r = load_recipe("fast", ["geometry.iterations=7", "semantic.use_position=false"])
+    assert r.geometry.iterations == 7 and r.semantic.use_position is False
+    with pytest.raises(RecipeError, match="unknown key 'iteratons'"):
+        load_recipe("fast", ["geometry.iteratons=7"])
+    with pytest.raises(RecipeError, match="expected a int"):
+        load_recipe("fast", ["geometry.iterations=many"])
+    with pytest.raises(RecipeError, match="unknown recipe"):
+        load_recipe("no-such-recipe")
+    with pytest.raises(RecipeError, match="class_weighting: 'balanced' is not one of"):
+        load_recipe("fast", ["semantic.class_weighting=balanced"])

@@ -1,7 +1,8 @@
 """Capture folders in: frames, cameras, images, masks, classes and the region of interest.
 
 ``load_capture`` is the entry point; ``check_capture`` decodes every input a run will read
-before it trains; ``list_images`` / ``read_image`` / ``read_mask`` / ``write_mask`` are the
+before it trains; ``estimate_poses`` (``poses``) gives a capture without cameras its poses by
+pycolmap structure-from-motion; ``list_images`` / ``read_image`` / ``read_mask`` / ``write_mask`` are the
 one lister, pixel readers and mask writer shared by every command and the outputs; ``select_frames`` reads the ``annotated_frames`` spec.
 Nothing here ever writes into a capture.
 """
@@ -13,6 +14,7 @@ from .load import load_capture, validate_capture
 from .masks import read_mask, write_mask
 from .model import Capture, Frame, SceneNormalization
 from .normalize import region_of_interest
+from .poses import PoseReport, estimate_poses
 from .select import select_frames
 
 __all__ = [
@@ -22,8 +24,10 @@ __all__ = [
     "CheckReport",
     "ExtraMask",
     "Frame",
+    "PoseReport",
     "SceneNormalization",
     "check_capture",
+    "estimate_poses",
     "list_images",
     "load_capture",
     "read_image",

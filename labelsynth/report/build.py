@@ -14,8 +14,8 @@ import numpy as np
 from ..capture.model import Capture
 from ..classes import ClassMap
 from ..errors import LabelsynthError
-from ..mesh_export import MESH_FORMATS, export_labelled_mesh
-from ..metrics import WOUND_BED
+from ..evaluation.metrics import WOUND_BED
+from ..export.mesh import MESH_FORMATS, export_labelled_mesh
 from . import plots
 from .consistency import (
     Check,
@@ -29,7 +29,7 @@ from .consistency import (
 from .html import render_html
 
 if TYPE_CHECKING:
-    from ..field.model import SemanticField
+    from ..render.field import SemanticField
 
 REPORT_JSON = "report.json"
 REPORT_HTML = "report.html"

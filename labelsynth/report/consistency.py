@@ -23,7 +23,7 @@ import numpy as np
 from ..cameras import Camera
 from ..capture.model import Capture
 from ..classes import IGNORE_ID, ClassMap
-from ..metrics import WOUND_BED, frame_counts
+from ..evaluation.metrics import WOUND_BED, frame_counts
 from ..progress import track
 
 # Cross-view consistency

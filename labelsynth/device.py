@@ -1,0 +1,18 @@
+"""The one place a torch device is chosen for a run."""
+
+from __future__ import annotations
+
+import torch
+
+from .errors import LabelsynthError
+
+
+def pick_device(name: str = "auto") -> torch.device:
+    """The one place a device is chosen: auto = CUDA when available, else CPU."""
+    if name == "auto":
+        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
+    if name == "cuda" and not torch.cuda.is_available():
+        raise LabelsynthError("--device cuda was asked for but torch sees no CUDA device")
+    if name not in {"cpu", "cuda"}:
+        raise LabelsynthError(f"unknown device '{name}' (use auto, cpu or cuda)")
+    return torch.device(name)

@@ -1,0 +1,452 @@
+"""`labelsynth bench`: the paper's Tables 1 and 2 on a capture whose every frame has a truth mask.
+
+Three methods, as in the paper:
+
+- ``2d``: the capture's automatic predictions themselves (the per-frame segmenter);
+- ``3d2d``: those predictions voted onto the fitted mesh and projected back (``fusion``);
+- ``field``: the semantic field trained on those predictions (geometry shared between runs,
+  only the cheap semantic stage is refitted), and once more on the expert annotations alone.
+
+Each runs under the paper's perturbations of the predictions (``perturb``): none,
+erosion-dilation, jitter, half-frames (2D has no half-frames row: it has no views to drop).
+For half-frames, only the kept frames' predictions vote / teach, and by default the geometry is
+refitted on the kept frames' images too, since the paper halved the training images.
+
+Scores are ``metrics.score_frames`` against ``TRUTH/<stem>.png`` over the frames that were not
+annotated (the annotated frames teach the annotation-trained field, so they are never scored),
+averaged per frame over each class's population, the paper's rule.
+"""
+
+from __future__ import annotations
+
+import json
+import time
+from collections.abc import Iterable, Sequence
+from pathlib import Path
+
+import numpy as np
+
+from ..capture import ExtraMask, check_capture, load_capture
+from ..capture.model import Capture
+from ..device import pick_device
+from ..errors import LabelsynthError
+from ..pipeline import fit_geometry, fit_semantics, labelled_frames
+from ..progress import console, track
+from ..recipe import load_recipe
+from .fusion import DEFAULT_CUTOFF_DEG, DEFAULT_STRIDE, fusion_baseline, load_mesh_unit
+from .metrics import WOUND_BED, Scores, score_frames
+from .perturb import PERTURBATIONS, apply_perturbation, half_frames
+
+METHODS = ("2d", "3d2d", "field")
+METHOD_NAMES = {"2d": "2D", "3d2d": "3D/2D", "field": "Field"}
+PERTURBATION_NAMES = {"none": "None", "erosion-dilation": "Erosion-Dilation", "jitter": "Jittering",
+                      "half-frames": "Half the frames"}
+_METHOD_ALIASES = {"2d": "2d", "3d2d": "3d2d", "3d/2d": "3d2d", "3d-2d": "3d2d", "fusion": "3d2d",
+                   "field": "field", "nerf": "field", "ours": "field"}
+# The paper's Table 1 columns besides the wound bed (the classes common enough to report).
+TABLE1_CLASSES = ("granulation", "slough")
+ROW_METRICS = ("dice", "recall", "precision", "iou")
+
+
+def parse_list(value: str | Iterable[str] | None, default: Sequence[str]) -> list[str]:
+    """``"a,b"`` or an iterable of names -> list (empty/None -> the default)."""
+    if value is None:
+        return list(default)
+    items = value.split(",") if isinstance(value, str) else [str(v) for v in value]
+    items = [i.strip() for i in items if i.strip()]
+    return items or list(default)
+
+
+def normalise_methods(methods: str | Iterable[str] | None) -> list[str]:
+    out = []
+    for m in parse_list(methods, METHODS):
+        key = _METHOD_ALIASES.get(m.lower())
+        if key is None:
+            raise LabelsynthError(f"unknown bench method {m!r}; choose from {', '.join(METHODS)}")
+        if key not in out:
+            out.append(key)
+    return [m for m in METHODS if m in out]
+
+
+def normalise_perturbations(perturbations: str | Iterable[str] | None) -> list[str]:
+    out = []
+    for p in parse_list(perturbations, PERTURBATIONS):
+        key = p.lower().replace("_", "-")
+        key = {"erosion": "erosion-dilation", "jittering": "jitter", "half": "half-frames"}.get(key, key)
+        if key not in PERTURBATIONS:
+            raise LabelsynthError(f"unknown perturbation {p!r}; choose from {', '.join(PERTURBATIONS)}")
+        if key not in out:
+            out.append(key)
+    return [p for p in PERTURBATIONS if p in out]
+
+
+def load_truths(truth_dir: str | Path, capture: Capture, names: Sequence[str]) -> dict[str, np.ndarray]:
+    """``TRUTH/<stem>.png`` for each named frame; a missing folder or file is a one-line error."""
+    truth_dir = Path(truth_dir)
+    if not truth_dir.is_dir():
+        raise LabelsynthError(f"{truth_dir}: truth folder not found")
+    missing = [truth_dir / f"{n}.png" for n in names if not (truth_dir / f"{n}.png").is_file()]
+    if missing:
+        more = f" (and {len(missing) - 1} more)" if len(missing) > 1 else ""
+        raise LabelsynthError(f"{missing[0]}: truth mask missing{more}")
+    out = {}
+    for n in names:
+        out[n] = capture.read_mask_file(truth_dir / f"{n}.png", capture.frame(n).size)  # cached by the check
+    return out
+
+
+def _score_rows(method: str, labels: str, perturbation: str, scores: Scores) -> list[dict]:
+    rows = []
+    for r in scores.table():
+        rows.append({"method": method, "labels": labels, "perturbation": perturbation, "class": r["class"],
+                     **{m: r[m] for m in ROW_METRICS}, "n": r["n"]})
+    return rows
+
+
+def _render_field(sem, capture: Capture, names: Sequence[str], progress: bool) -> dict[str, np.ndarray]:
+    cams = dict(zip(capture.names, capture.unit_cameras()))
+    return {n: sem.render(cams[n]).mask for n in track(list(names), "field render", enabled=progress)}
+
+
+def run_bench(
+    capture_dir: str | Path,
+    truth_dir: str | Path,
+    out_dir: str | Path,
+    *,
+    perturbations: str | Iterable[str] | None = PERTURBATIONS,
+    methods: str | Iterable[str] | None = METHODS,
+    recipe: str | Path = "default",
+    device: str = "auto",
+    overrides: list[str] | None = None,
+    seed: int = 0,
+    progress: bool = True,
+    mesh: str | Path | None = None,
+    half_geometry: bool = True,
+    cutoff_deg: float = DEFAULT_CUTOFF_DEG,
+    stride: int = DEFAULT_STRIDE,
+    annotated_frames: str | list[str] | None = None,
+) -> dict:
+    """Score 2D, 3D/2D and the field under each perturbation; write OUT/bench.{json,md,png}.
+
+    ``mesh``: a world-coordinate mesh file for 3D/2D instead of the fitted field's surface.
+    ``half_geometry``: refit the geometry on the kept frames for half-frames (the paper's
+    setting) rather than reuse the all-frames geometry. ``annotated_frames``: which frames'
+    annotations teach (``load_capture``); the others are scored. Returns the bench.json content.
+    """
+    t_start = time.perf_counter()
+    capture = load_capture(capture_dir, annotated_frames=annotated_frames)
+    meths = normalise_methods(methods)
+    perts = normalise_perturbations(perturbations)
+    rec = load_recipe(recipe, overrides)
+    dev = pick_device(device)
+
+    annotated = [f.name for f in capture.frames if f.annotation_path is not None]
+    scored = [n for n in capture.names if n not in set(annotated)]
+    if not scored:
+        raise LabelsynthError(f"{capture.root}: every frame is annotated; no frame is left to score")
+    if not capture.has_predictions:
+        raise LabelsynthError(f"{capture.root / 'predictions'}: the benchmark needs automatic predictions, none found")
+    if "2d" in meths:
+        lacking = [capture.frame(n) for n in scored if capture.frame(n).prediction_path is None]
+        if lacking:
+            raise LabelsynthError(
+                f"{capture.root / 'predictions' / (lacking[0].name + '.png')}: missing; the 2D baseline needs a "
+                "prediction for every scored frame"
+            )
+    needs_field = "field" in meths
+    needs_geometry = needs_field or ("3d2d" in meths and mesh is None)
+    if not Path(truth_dir).is_dir():
+        raise LabelsynthError(f"{truth_dir}: truth folder not found")
+    # Every file the bench reads, checked before any fit: images only when a geometry is fitted,
+    # annotations only for the annotation-trained field, the truth of every scored frame.
+    truth_masks = [ExtraMask(Path(truth_dir) / f"{n}.png", capture.frame(n).size, "truth") for n in scored]
+    check_capture(capture, labels="both" if needs_field else "predictions", images=needs_geometry,
+                  extra_masks=truth_masks).raise_if_problems()
+    truths = load_truths(truth_dir, capture, scored)
+    truth_list = [truths[n] for n in scored]
+    preds = {f.name: capture.load_prediction(i) for i, f in enumerate(capture.frames) if f.prediction_path is not None}
+    user_mesh = load_mesh_unit(mesh, capture.normalization) if mesh is not None else None
+
+    def log(msg: str) -> None:
+        if progress:
+            console.print(f"[bold]bench[/] {msg}")
+
+    def score(masks: dict[str, np.ndarray]) -> Scores:
+        return score_frames([masks[n] for n in scored], truth_list, capture.classes, scored)
+
+    rows: list[dict] = []
+    seconds = {m: 0.0 for m in meths}
+    timing: dict[str, float] = {}
+    log(f"{len(capture)} frames ({len(annotated)} annotated, {len(scored)} scored), methods={','.join(meths)}, "
+        f"perturbations={','.join(perts)}, recipe={rec.name}, device={dev}")
+
+    kept = half_frames(capture.names)
+    sem = sem_half = None
+    if needs_geometry:
+        t0 = time.perf_counter()
+        sem, _ = fit_geometry(capture, rec, dev, seed=seed, progress=progress)
+        timing["geometry"] = time.perf_counter() - t0
+        sem_half = sem
+        if "half-frames" in perts and half_geometry:
+            t0 = time.perf_counter()
+            index = {n: i for i, n in enumerate(capture.names)}
+            sem_half, _ = fit_geometry(capture, rec, dev, frames=[index[n] for n in kept], seed=seed, progress=progress)
+            timing["geometry_half_frames"] = time.perf_counter() - t0
+
+    for pert in perts:
+        t0 = time.perf_counter()
+        if pert == "half-frames":
+            keep = set(kept)
+            masks = {n: np.array(m, copy=True) for n, m in preds.items() if n in keep}
+        else:
+            masks = apply_perturbation(pert, preds, seed=seed)
+        t_perturb = time.perf_counter() - t0
+        geometry = sem_half if pert == "half-frames" else sem
+
+        if "2d" in meths and pert != "half-frames":
+            s = score(masks)
+            seconds["2d"] += t_perturb
+            rows += _score_rows("2d", "predictions", pert, s)
+            log(f"2D / {pert}: {s.summary_line([WOUND_BED])}")
+        if "3d2d" in meths:
+            t0 = time.perf_counter()
+            source = user_mesh if user_mesh is not None else geometry
+            out = fusion_baseline(source, capture, masks, frames=scored, cutoff_deg=cutoff_deg, stride=stride,
+                                  progress=progress)
+            seconds["3d2d"] += time.perf_counter() - t0
+            s = score(out)
+            rows += _score_rows("3d2d", "predictions", pert, s)
+            log(f"3D/2D / {pert}: {s.summary_line([WOUND_BED])}")
+        if needs_field:
+            t0 = time.perf_counter()
+            frames = labelled_frames(capture, "predictions", rec, predictions=masks)
+            fit_semantics(geometry, frames, seed=seed, progress=progress)
+            out = _render_field(geometry, capture, scored, progress)
+            seconds["field"] += time.perf_counter() - t0
+            s = score(out)
+            rows += _score_rows("field", "predictions", pert, s)
+            log(f"field / {pert}: {s.summary_line([WOUND_BED])}")
+
+    annotations_note = None
+    if needs_field:
+        if capture.has_annotations:
+            t0 = time.perf_counter()
+            fit_semantics(sem, labelled_frames(capture, "annotations", rec), seed=seed, progress=progress)
+            out = _render_field(sem, capture, scored, progress)
+            seconds["field"] += time.perf_counter() - t0
+            s = score(out)
+            rows += _score_rows("field", "annotations", "none", s)
+            log(f"field (annotations) / none: {s.summary_line([WOUND_BED])}")
+        else:
+            annotations_note = "the capture has no annotations/, so there is no annotation-trained field row"
+
+    timing["total"] = time.perf_counter() - t_start
+    result = {
+        "rows": rows,
+        "seconds": seconds,
+        "timing": timing,
+        "capture": str(Path(capture_dir).resolve()),
+        "truth": str(Path(truth_dir).resolve()),
+        "recipe": rec.name,
+        "device": str(dev),
+        "seed": seed,
+        "methods": meths,
+        "perturbations": perts,
+        "frames": len(capture),
+        "annotated_frames": annotated,
+        "scored_frames": len(scored),
+        "half_frames_kept": len(kept),
+        "half_frames_geometry": _half_geometry_note(user_mesh is not None, needs_field, half_geometry),
+        "fusion": {"cutoff_deg": cutoff_deg, "stride": stride, "mesh": str(mesh) if mesh else "fitted field"},
+        "notes": [annotations_note] if annotations_note else [],
+    }
+    out_dir = Path(out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    (out_dir / "bench.json").write_text(json.dumps(result, indent=2))
+    (out_dir / "bench.md").write_text(bench_markdown(result))
+    bench_plot(result, out_dir / "bench.png")
+    log(f"wrote {out_dir / 'bench.json'}, bench.md, bench.png in {timing['total']:.0f} s")
+    return result
+
+
+def _half_geometry_note(user_mesh: bool, field: bool, refit: bool) -> str:
+    fitted = "refit on kept frames" if refit else "shared (all frames)"
+    if not user_mesh:
+        return fitted
+    return f"3D/2D: user mesh; field: {fitted}" if field else "user mesh"
+
+
+# ------------------------------------------------------------------------------------------
+# tables and plot
+# ------------------------------------------------------------------------------------------
+def _find(rows: list[dict], method: str, labels: str, pert: str, cls: str) -> dict | None:
+    for r in rows:
+        if (r["method"], r["labels"], r["perturbation"], r["class"]) == (method, labels, pert, cls):
+            return r
+    return None
+
+
+def _series(result: dict) -> list[tuple[str, str]]:
+    """(method, labels) pairs present, in table order."""
+    seen = []
+    for m in METHODS:
+        for lab in ("predictions", "annotations"):
+            if any(r["method"] == m and r["labels"] == lab for r in result["rows"]) and (m, lab) not in seen:
+                seen.append((m, lab))
+    return seen
+
+
+def _label(method: str, labels: str) -> str:
+    name = METHOD_NAMES[method]
+    return f"{name} (annotations)" if labels == "annotations" else name
+
+
+def _bold_table(values: list[list[float | None]]) -> list[list[str]]:
+    """Format to 3 decimals; the best value of each column (ties included) in bold."""
+    cols = len(values[0]) if values else 0
+    best = []
+    for j in range(cols):
+        col = [round(v[j], 3) for v in values if v[j] is not None]
+        best.append(max(col) if col else None)
+    out = []
+    for v in values:
+        row = []
+        for j, x in enumerate(v):
+            if x is None:
+                row.append("-")
+            elif best[j] is not None and round(x, 3) == best[j] and len(values) > 1:
+                row.append(f"**{x:.3f}**")
+            else:
+                row.append(f"{x:.3f}")
+        out.append(row)
+    return out
+
+
+def _table1_classes(result: dict) -> list[str]:
+    """Wound bed plus granulation and slough (the paper's columns) when present in the
+    class map; for other class maps, every non-background class with a population."""
+    names = {r["class"] for r in result["rows"]}
+    cols = [c for c in TABLE1_CLASSES if c in names]
+    if not cols:
+        cols = sorted({r["class"] for r in result["rows"] if r["n"] and r["class"] not in (WOUND_BED, "background")})
+    return [WOUND_BED, *cols]
+
+
+def bench_markdown(result: dict) -> str:
+    """Tables shaped like the paper's Table 1 (accuracy) and Table 2 (robustness)."""
+    rows = result["rows"]
+    series = _series(result)
+    lines = [
+        "# labelsynth benchmark",
+        "",
+        f"Capture `{result['capture']}`: {result['frames']} frames, {len(result['annotated_frames'])} annotated "
+        f"(never scored), {result['scored_frames']} scored against `{result['truth']}`. Recipe `{result['recipe']}`, "
+        f"device {result['device']}, seed {result['seed']}.",
+        "",
+        "Scores: per-frame Dice (DSC) and recall averaged over the frames whose truth contains the class "
+        "(the paper's population rule); n = population size.",
+        "",
+    ]
+    methods = result["methods"]
+    if "2d" in methods:
+        lines.append("- 2D: the capture's predictions themselves.")
+    if "3d2d" in methods:
+        lines.append(
+            "- 3D/2D: the predictions voted onto the mesh (|cos|-weighted per-vertex majority, cut-off "
+            f"{result['fusion']['cutoff_deg']:g} deg, mesh: {result['fusion']['mesh']}) and rendered back."
+        )
+    if "field" in methods:
+        lines.append(
+            "- Field: the semantic field trained on the predictions (geometry fitted once and shared by all rows, "
+            "half-frames aside: see below; only the semantic stage is refitted). Field (annotations): trained on the expert "
+            "annotations alone."
+        )
+    lines.append("")
+    if "half-frames" in result["perturbations"]:
+        lines += [
+            f"Half the frames: {result['half_frames_kept']} of {result['frames']} frames' predictions (every other "
+            f"frame) vote / teach; geometry for that row: {result['half_frames_geometry']}. All rows are scored on "
+            "the same frames.",
+            "",
+        ]
+    for note in result.get("notes", []):
+        lines += [f"Note: {note}.", ""]
+
+    # Table 1
+    classes = _table1_classes(result)
+    t1 = [(m, lab) for m, lab in series if _find(rows, m, lab, "none", WOUND_BED)]
+    lines += ["## Table 1: accuracy (no perturbation)", ""]
+    if t1:
+        header = "| Method | " + " | ".join(f"{c.replace('_', ' ').title()} DSC | Recall" for c in classes) + " |"
+        lines += [header, "|---|" + "---:|---:|" * len(classes)]
+        values = []
+        for m, lab in t1:
+            v = []
+            for c in classes:
+                r = _find(rows, m, lab, "none", c)
+                v += [r["dice"] if r else None, r["recall"] if r else None]
+            values.append(v)
+        for (m, lab), cells in zip(t1, _bold_table(values)):
+            lines.append(f"| {_label(m, lab)} | " + " | ".join(cells) + " |")
+        pops = []
+        for c in classes:
+            r = next((r for r in rows if r["class"] == c and r["perturbation"] == "none"), None)
+            pops.append(f"{c.replace('_', ' ')} n={r['n'] if r else 0}")
+        lines += ["", "Population sizes: " + ", ".join(pops) + ".", ""]
+    else:
+        lines += ["(no unperturbed rows were run)", ""]
+
+    # Table 2
+    lines += ["## Table 2: robustness (wound bed)", "",
+              "Best per column within each perturbation in bold.", "",
+              "| Method | Perturbation | DSC | Recall |", "|---|---|---:|---:|"]
+    for pert in result["perturbations"]:
+        block = [(m, lab) for m, lab in series if _find(rows, m, lab, pert, WOUND_BED)]
+        if not block:
+            continue
+        values = [[_find(rows, m, lab, pert, WOUND_BED)["dice"], _find(rows, m, lab, pert, WOUND_BED)["recall"]]
+                  for m, lab in block]
+        for (m, lab), cells in zip(block, _bold_table(values)):
+            lines.append(f"| {_label(m, lab)} | {PERTURBATION_NAMES[pert]} | {cells[0]} | {cells[1]} |")
+    lines += ["", "## Time", "", "| | seconds |", "|---|---:|"]
+    for m, s in result["seconds"].items():
+        lines.append(f"| {METHOD_NAMES[m]} (all rows, geometry excluded) | {s:.1f} |")
+    for k, s in result.get("timing", {}).items():
+        lines.append(f"| {k.replace('_', ' ')} | {s:.1f} |")
+    return "\n".join(lines) + "\n"
+
+
+def bench_plot(result: dict, path: str | Path) -> None:
+    """Grouped bars: wound-bed Dice and recall per perturbation, one bar per method."""
+    from matplotlib.figure import Figure  # no pyplot: no global backend state
+
+    rows = result["rows"]
+    perts = result["perturbations"]
+    series = _series(result)
+    fig = Figure(figsize=(max(6.0, 2.2 * len(perts) + 2), 4.2), layout="constrained")
+    axes = fig.subplots(1, 2, sharey=True)
+    width = 0.8 / max(1, len(series))
+    x = np.arange(len(perts))
+    values = {}
+    for metric in ("dice", "recall"):
+        for m, lab in series:
+            rs = [_find(rows, m, lab, p, WOUND_BED) for p in perts]
+            values[metric, m, lab] = np.array(
+                [np.nan if r is None or r[metric] is None else r[metric] for r in rs], dtype=float
+            )
+    # The methods differ by a few hundredths: an axis from 0 would hide that, so it starts
+    # 0.05 below the lowest bar (rounded down to 0.05) and every bar carries its value.
+    finite = np.concatenate([v[np.isfinite(v)] for v in values.values()] + [np.array([1.0])])
+    floor = max(0.0, np.floor((finite.min() - 0.05) * 20) / 20)
+    for ax, metric, title in zip(axes, ("dice", "recall"), ("Wound bed Dice", "Wound bed recall")):
+        for k, (m, lab) in enumerate(series):
+            bars = ax.bar(x + (k - (len(series) - 1) / 2) * width, values[metric, m, lab], width, label=_label(m, lab))
+            ax.bar_label(bars, fmt="%.3f", rotation=90, padding=2, fontsize=7)
+        ax.set_xticks(x, [PERTURBATION_NAMES[p] for p in perts], rotation=15)
+        ax.set_title(title if floor == 0 else f"{title} (axis from {floor:.2f})")
+        ax.set_ylim(floor, 1.0 + 0.12 * (1.0 - floor))  # headroom for the value labels
+        ax.grid(axis="y", alpha=0.3)
+    axes[0].set_ylabel("score")
+    fig.legend(*axes[0].get_legend_handles_labels(), loc="outside lower center", ncols=max(1, len(series)),
+               fontsize="small")
+    fig.savefig(path, dpi=110)

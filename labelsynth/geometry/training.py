@@ -1,0 +1,189 @@
+"""Stage 1 training: fit the SDF and colour to the images (L1 photometric + eikonal)."""
+
+from __future__ import annotations
+
+import math
+import time
+from collections.abc import Sequence
+from dataclasses import dataclass
+from typing import TYPE_CHECKING
+
+import cv2
+import numpy as np
+import torch
+from torch.nn import functional as F
+
+from ..cameras import Camera
+from ..progress import make_progress
+from .sampling import (
+    OccupancyGrid,
+    accumulate,
+    accumulate_scalar,
+    march,
+    neus_weights,
+    ray_box,
+)
+from .sdf import SDFField
+
+if TYPE_CHECKING:  # the recipe imports this package's sdf module: no import at run time
+    from ..recipe import GeometryConfig
+
+# A ray whose surface leaves less than this much light through shows no background.
+BACKGROUND_VISIBLE = 1e-2
+
+
+def _resize(img: np.ndarray, camera: Camera, interpolation: int) -> np.ndarray:
+    if img.shape[1] == camera.width and img.shape[0] == camera.height:
+        return img
+    return cv2.resize(img, (camera.width, camera.height), interpolation=interpolation)
+
+
+def _camera_rays(camera: Camera, pixels: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+    o, d = camera.rays(pixels)
+    return o.astype(np.float32), d.astype(np.float32)
+
+
+def border_colour(images: Sequence[np.ndarray], fraction: float = 0.03) -> np.ndarray:
+    """Median RGB (0-1) of the images' outer rim: the likeliest colour of what lies beyond
+    the region of interest (a white or black backdrop, a table, skin around a wound)."""
+    rims = []
+    for img in images:
+        b = max(1, int(round(fraction * min(img.shape[:2]))))
+        rims += [img[:b].reshape(-1, 3), img[-b:].reshape(-1, 3), img[:, :b].reshape(-1, 3), img[:, -b:].reshape(-1, 3)]
+    return np.median(np.concatenate(rims), axis=0) / 255.0
+
+
+class RayBank:
+    """Every pixel of every frame at the training scale, as rays and target colours."""
+
+    def __init__(self, cameras: Sequence[Camera], images: Sequence[np.ndarray], device: torch.device) -> None:
+        origins, dirs, rgbs, small = [], [], [], []
+        for cam, img in zip(cameras, images):
+            img = _resize(img, cam, cv2.INTER_AREA)
+            small.append(img)
+            o, d = _camera_rays(cam)
+            origins.append(o)
+            dirs.append(d)
+            rgbs.append(img.reshape(-1, 3).astype(np.float32) / 255.0)
+        self.origins = torch.from_numpy(np.concatenate(origins)).to(device)
+        self.dirs = torch.from_numpy(np.concatenate(dirs)).to(device)
+        self.rgb = torch.from_numpy(np.concatenate(rgbs)).to(device)
+        self.device = device
+        self.border_rgb = border_colour(small)
+
+    def __len__(self) -> int:
+        return self.origins.shape[0]
+
+    def sample(self, n: int, generator: torch.Generator | None = None):
+        idx = torch.randint(0, len(self), (n,), device=self.device, generator=generator)
+        return self.origins[idx], self.dirs[idx], self.rgb[idx]
+
+
+@dataclass
+class GeometryStats:
+    iterations: int
+    seconds: float
+    final_psnr: float
+    mean_samples_per_ray: float
+    inv_s: float
+    occupancy: float
+
+
+def render_rays_rgb(
+    field: SDFField,
+    grid: OccupancyGrid,
+    origins: torch.Tensor,
+    dirs: torch.Tensor,
+    cos_anneal_ratio: float,
+    steps: int,
+    train: bool,
+):
+    """NeuS colour rendering of a batch of rays; returns rgb, opacity and the samples."""
+    samples = march(origins, dirs, grid, steps=steps, perturb=train)
+    n = origins.shape[0]
+    far = ray_box(origins, dirs)[1]
+    if samples.positions.shape[0] == 0:
+        return field.get_background(dirs, origins, far), torch.zeros(n, device=origins.device), samples
+    along = neus_weights(field, samples, cos_anneal_ratio, train=train)
+    color = field.get_color(along.feature, F.normalize(along.gradient, dim=-1), samples.dirs)
+    rgb = accumulate(color, along.weights, samples.ray_index, n)
+    opacity = accumulate_scalar(along.weights, samples.ray_index, n)
+    bg = field.get_background(dirs, origins, far, visible=(1.0 - opacity.detach()) > BACKGROUND_VISIBLE)
+    rgb = rgb + (1.0 - opacity)[:, None] * bg
+    return rgb, opacity, samples
+
+
+def _band(cfg: GeometryConfig, field: SDFField) -> float:
+    """Half-width of the sampled band around the surface: a few widths of NeuS's logistic density."""
+    return min(cfg.occupancy_band / float(field.inv_s.detach()), cfg.occupancy_max_band)
+
+
+def train_geometry(
+    field: SDFField,
+    bank: RayBank,
+    cfg: GeometryConfig,
+    *,
+    seed: int = 0,
+    progress: bool = True,
+) -> tuple[OccupancyGrid, GeometryStats]:
+    """Stage 1: fit SDF + colour to the images (L1 photometric + eikonal)."""
+    device = bank.device
+    torch.manual_seed(seed)
+    gen = torch.Generator(device=device).manual_seed(seed)
+    field.train()
+    params = [
+        {"params": [field.encoding.table], "lr": cfg.lr},
+        {"params": [p for n, p in field.named_parameters() if n != "encoding.table" and n != "variance"], "lr": cfg.lr},
+        {"params": [field.variance], "lr": cfg.lr},
+    ]
+    opt = torch.optim.Adam(params, betas=(cfg.adam_beta1, cfg.adam_beta2), eps=cfg.adam_eps)
+    gamma = cfg.lr_final_factor ** (1.0 / max(cfg.iterations, 1))
+    sched = torch.optim.lr_scheduler.LambdaLR(
+        opt, lambda it: min(1.0, (it + 1) / max(cfg.warmup_iterations, 1)) * gamma**it  # warm-up, then exponential decay
+    )
+    grid = OccupancyGrid(cfg.occupancy_resolution, device, margin=cfg.occupancy_margin, full_every=cfg.occupancy_full_every)
+    n_rays = min(1024, cfg.max_rays)
+    psnr_ema, spr_ema, occ = 0.0, 0.0, 1.0
+    t0 = time.time()
+    with make_progress(progress) as bar:
+        task = bar.add_task("geometry", total=cfg.iterations, status="")
+        for it in range(cfg.iterations):
+            field.encoding.set_active_levels(cfg.levels_start + it // max(cfg.levels_every, 1))
+            ramp = min(1.0, it / max(cfg.inv_s_ramp * cfg.iterations, 1.0))
+            field.inv_s_floor.fill_(cfg.inv_s_start * (cfg.inv_s_end / cfg.inv_s_start) ** ramp)
+            if it % cfg.occupancy_every == 0:
+                occ = grid.update(field.sdf_batched, _band(cfg, field))
+            origins, dirs, target = bank.sample(n_rays, gen)
+            cos_ratio = min(1.0, it / max(cfg.cos_anneal_iters, 1))
+            rgb, opacity, samples = render_rays_rgb(
+                field, grid, origins, dirs, cos_ratio, cfg.march_steps, train=True
+            )
+            loss = F.l1_loss(rgb, target)
+            # Eikonal on a subset of ray samples (near the surface, where it matters) plus random
+            # points of the cube (so the whole cube stays a distance function).
+            pts = samples.positions
+            if pts.shape[0] > cfg.eikonal_samples:
+                pick = torch.randint(0, pts.shape[0], (cfg.eikonal_samples,), device=device, generator=gen)
+                pts = pts[pick]
+            rand_pts = torch.rand(cfg.eikonal_samples // 4, 3, device=device, generator=gen) * 2 - 1
+            _, _, eik_grad = field.sdf_and_gradient(torch.cat([pts, rand_pts]), create_graph=True)
+            loss = loss + cfg.eikonal_weight * ((eik_grad.norm(dim=-1) - 1.0) ** 2).mean()
+            opt.zero_grad(set_to_none=True)
+            loss.backward()
+            opt.step()
+            sched.step()
+            n_samples = samples.positions.shape[0]
+            spr = n_samples / max(n_rays, 1)
+            # Sample-count-driven batch: as the band tightens, more rays fit the same budget.
+            if n_samples > 0:
+                n_rays = int(min(cfg.max_rays, max(256, n_rays * 0.8 + 0.2 * n_rays * cfg.target_samples / n_samples)))
+            with torch.no_grad():
+                mse = F.mse_loss(rgb, target).item()
+            psnr = -10 * math.log10(max(mse, 1e-10))
+            psnr_ema = psnr if it == 0 else 0.95 * psnr_ema + 0.05 * psnr
+            spr_ema = spr if it == 0 else 0.95 * spr_ema + 0.05 * spr
+            bar.update(task, advance=1, status=f"psnr {psnr_ema:5.2f} rays {n_rays} spr {spr_ema:4.1f} s {float(field.inv_s.detach()):6.0f}")
+    grid.update(field.sdf_batched, _band(cfg, field), jitter=False, full=True)
+    field.eval()
+    stats = GeometryStats(cfg.iterations, time.time() - t0, psnr_ema, spr_ema, float(field.inv_s.detach()), occ)
+    return grid, stats

@@ -1,0 +1,153 @@
+"""The geometry stage's pieces: encoding derivatives, ray marching and rendering weights, the
+initial shape, the outer background and the occupancy grid."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import torch
+
+from labelsynth.geometry.encoding import HashGridEncoding
+from labelsynth.geometry.sampling import OccupancyGrid, composite_weights, march, ray_box
+
+
+def test_encoding_fast_path_matches_autograd_and_finite_differences():
+    torch.manual_seed(0)
+    enc = HashGridEncoding(levels=6, log2_table=10, base_resolution=4, max_resolution=64).double()
+    enc.table.data.normal_()
+    x = (torch.rand(40, 3, dtype=torch.float64) * 1.8 - 0.9).requires_grad_(True)
+    weights = torch.randn(40, enc.output_dim, dtype=torch.float64)
+    fast = (enc(x) * weights).sum()
+    slow = (enc(x, twice_differentiable=True) * weights).sum()
+    g_fast = torch.autograd.grad(fast, [x, enc.table])
+    g_slow = torch.autograd.grad(slow, [x, enc.table])
+    assert torch.allclose(fast, slow)
+    assert torch.allclose(g_fast[0], g_slow[0], atol=1e-9)
+    assert torch.allclose(g_fast[1], g_slow[1], atol=1e-12)
+    h = 1e-6
+    eye = torch.eye(3, dtype=torch.float64)
+    f = lambda p: (enc(p) * weights).sum(-1)  # noqa: E731
+    fd = torch.stack([(f(x + h * eye[k]) - f(x - h * eye[k])) / (2 * h) for k in range(3)], -1)
+    per_point = torch.autograd.grad(f(x).sum(), x)[0]
+    assert torch.allclose(per_point, fd, atol=1e-5)
+
+
+def test_encoding_is_twice_differentiable_for_the_eikonal_loss():
+    enc = HashGridEncoding(levels=4, log2_table=10, base_resolution=4, max_resolution=32)
+    enc.table.data.normal_()
+    x = (torch.rand(16, 3) * 1.6 - 0.8).requires_grad_(True)
+    (g,) = torch.autograd.grad(enc(x, twice_differentiable=True).sum(), x, create_graph=True)
+    (g.norm(dim=-1) - 1).pow(2).mean().backward()
+    assert enc.table.grad is not None and enc.table.grad.abs().sum() > 0
+
+
+def test_progressive_levels_zero_the_fine_features():
+    enc = HashGridEncoding(levels=5, features_per_level=2, log2_table=10, base_resolution=4, max_resolution=64)
+    enc.table.data.normal_()
+    enc.set_active_levels(2)
+    out = enc(torch.rand(8, 3) * 2 - 1)
+    assert out.shape == (8, 10)
+    assert torch.all(out[:, 4:] == 0) and torch.any(out[:, :4] != 0)
+
+
+def test_ray_box_and_march_stay_in_the_cube():
+    o = torch.tensor([[0.0, 0.0, 3.0], [5.0, 5.0, 5.0]])
+    d = torch.tensor([[0.0, 0.0, -1.0], [1.0, 0.0, 0.0]])
+    near, far = ray_box(o, d)
+    assert math.isclose(near[0].item(), 2.0, abs_tol=1e-6) and math.isclose(far[0].item(), 4.0, abs_tol=1e-6)
+    assert far[1] <= near[1]  # the second ray misses
+    grid = OccupancyGrid(8)
+    s = march(o, d, grid, steps=32, perturb=False)
+    assert s.positions.shape[0] == 32 and bool((s.ray_index == 0).all())
+    assert s.positions.abs().max() <= 1.0 + 1e-6
+
+
+def test_composite_weights_match_a_per_ray_loop():
+    torch.manual_seed(1)
+    ray_index = torch.tensor([0, 0, 0, 2, 2, 3])
+    alpha = torch.rand(6)
+    w = composite_weights(alpha, ray_index, 4)
+    expected = []
+    for r in range(4):
+        t = 1.0
+        for a in alpha[ray_index == r]:
+            expected.append(a * t)
+            t *= 1 - a
+    assert torch.allclose(w, torch.stack(expected), atol=1e-6)
+
+
+def test_initial_shape_follows_how_the_cameras_see_a_plane():
+    """A plane only for cameras that all look at it from one side, squarely enough.
+
+    The lego of NeRF-synthetic (cameras on a hemisphere around the object) averages a mean
+    viewing direction of length 0.575, above the 0.5 that once picked a plane; some of its
+    cameras see any plane edge-on, so it must get the sphere."""
+    from labelsynth.cameras import look_at
+    from labelsynth.geometry.sdf import choose_init_shape
+
+    def forwards(elevations_deg, azimuths_deg, target=(0.0, 0.0, 0.0)):
+        out = []
+        for el in np.radians(elevations_deg):
+            for az in np.radians(azimuths_deg):
+                eye = 3.0 * np.array([np.cos(el) * np.cos(az), np.cos(el) * np.sin(az), np.sin(el)])
+                out.append(-look_at(eye, np.asarray(target))[:3, 2])
+        return np.array(out)
+
+    hemisphere = forwards([5, 20, 35, 50, 65, 80], np.arange(0, 360, 30))  # lego-like
+    assert np.linalg.norm(hemisphere.mean(0)) > 0.5  # what fooled the old rule
+    assert choose_init_shape(hemisphere) == "sphere"
+    assert choose_init_shape(forwards([0], np.arange(0, 360, 20))) == "sphere"  # an orbit
+    assert choose_init_shape(forwards([40, 60, 80], np.arange(0, 300, 25))) == "plane"  # a phone's arc over a wound
+    assert choose_init_shape(forwards([90], [0])) == "plane"  # one camera
+    # a few stray oblique frames do not turn a one-sided capture into a sphere
+    arc = forwards([50, 65, 80], np.arange(0, 360, 30))
+    assert choose_init_shape(np.concatenate([arc, forwards([2], [0, 180])])) == "plane"
+
+
+def test_contraction_keeps_the_cube_and_folds_the_rest_into_a_shell():
+    from labelsynth.geometry.background import contract
+
+    inside = torch.rand(100, 3) * 2 - 1
+    assert torch.equal(contract(inside), inside)
+    far = torch.randn(100, 3) * 1e4
+    r = contract(far).abs().amax(-1)
+    assert bool(((r > 1) & (r < 2)).all())
+    edge = torch.tensor([[1.0, 0.3, -0.2]])
+    assert torch.allclose(contract(edge * 1.0001), edge, atol=1e-3)  # continuous at the wall
+
+
+def test_outer_background_starts_clear_and_runs_only_where_the_surface_lets_light_through():
+    from labelsynth.geometry.encoding import sh_deg2
+    from labelsynth.geometry.sdf import SDFConfig, SDFField
+
+    torch.manual_seed(0)
+    field = SDFField(SDFConfig(levels=2, log2_table=8, base_resolution=4, max_resolution=8, background="outer"))
+    field.initialise_background([1.0, 1.0, 1.0])  # a white backdrop
+    origins = torch.tensor([[0.0, 0.0, 3.0]]).repeat(6, 1)
+    dirs = torch.nn.functional.normalize(torch.randn(6, 3), dim=-1)
+    far = torch.full((6,), 2.5)
+    rgb, transmittance = field.outer(origins, dirs, far)
+    assert bool((transmittance > 0.9).all())  # transparent at the start: the backdrop shows
+    full = field.get_background(dirs, origins, far)
+    assert torch.allclose(full, torch.full_like(full, 0.98), atol=0.02)
+    visible = torch.tensor([True, False, True, False, False, True])
+    part = field.get_background(dirs, origins, far, visible=visible)
+    env = torch.sigmoid(field.background(sh_deg2(dirs)))
+    assert torch.allclose(part[visible], full[visible]) and torch.allclose(part[~visible], env[~visible])
+
+
+def test_partial_occupancy_updates_agree_with_full_ones_while_the_surface_moves_little():
+    radius = [0.5]
+
+    def sdf(p):
+        return p.norm(dim=-1) - radius[0]
+
+    partial = OccupancyGrid(32, full_every=4, margin=0.1)
+    full = OccupancyGrid(32, full_every=1)
+    for step in range(9):
+        radius[0] = 0.5 + 0.01 * step  # moves far less than the margin between updates
+        partial.update(sdf, 0.05, jitter=False)
+        full.update(sdf, 0.05, jitter=False)
+        assert torch.equal(partial.occupied, full.occupied), step
+    assert 0.0 < float(full.occupied.float().mean()) < 0.5

@@ -1,0 +1,147 @@
+"""The semantic stage's pieces: class weights, wound-bed aggregation and decision, the
+weighted loss, per-frame gating of the baked rays and the iteration count."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+import torch
+
+from labelsynth.classes import ClassInfo, ClassMap
+from labelsynth.geometry.sampling import OccupancyGrid
+from labelsynth.recipe import SemanticConfig, load_recipe
+from labelsynth.semantics.head import class_weights, decide_labels, wound_bed_logits, wound_bed_probability
+from labelsynth.semantics.training import (
+    LabelledFrame,
+    bake_semantic_rays,
+    resolve_class_weighting,
+    semantic_iterations,
+    weighted_cross_entropy,
+)
+
+
+def test_class_weights_follow_the_paper():
+    cm = ClassMap.default()
+    counts = np.array([1000, 300, 100, 0, 100, 0])  # background, granulation, slough, necrotic, epithelial, unknown
+    w = class_weights(counts, cm)
+    assert w[0] == pytest.approx(0.1)
+    assert w[1] == pytest.approx(0.1 + 0.9 * 300 / 500)
+    assert w[2] == pytest.approx(0.1 + 0.9 * 100 / 500)
+    assert w[3] == pytest.approx(0.1)  # absent class keeps the floor
+    assert w[4] == pytest.approx(0.1 + 0.9 * 100 / 500)
+
+
+def test_class_weighting_schemes():
+    cm = ClassMap.default()
+    counts = np.array([1000, 300, 100, 0, 100, 0])
+    u = class_weights(counts, cm, scheme="uniform")
+    assert np.allclose(u, 1.0)
+    eq = class_weights(counts, cm, background_weight=0.2, scheme="equal-tissue")
+    assert eq.tolist() == pytest.approx([0.2, 1, 1, 1, 1, 1])
+    inv = class_weights(counts, cm, scheme="inverse")
+    # inverse frequency: every present class carries the same total weight; absent classes none
+    totals = inv * counts
+    assert np.allclose(totals[counts > 0], totals[0])
+    assert inv[3] == 0 and inv[5] == 0
+    assert (inv * counts).sum() == pytest.approx(counts.sum(), rel=1e-5)  # mean weight per pixel 1
+    sq = class_weights(counts, cm, scheme="inverse-sqrt")
+    assert sq[2] / sq[1] == pytest.approx(np.sqrt(3.0), rel=1e-5)
+    with pytest.raises(ValueError, match="unknown class weighting"):
+        class_weights(counts, cm, scheme="median")
+
+
+def test_wound_bed_first_decision():
+    cm = ClassMap.default()  # background, granulation, slough, necrotic, epithelial, unknown
+    probs = np.array([
+        [0.40, 0.35, 0.25, 0.0, 0.0, 0.0],  # bed 0.60 beats background: its likeliest tissue
+        [0.60, 0.30, 0.10, 0.0, 0.0, 0.0],  # background wins outright
+        [0.10, 0.20, 0.70, 0.0, 0.0, 0.0],  # plain tissue
+    ])
+    assert decide_labels(probs, cm, "argmax").tolist() == [0, 0, 2]
+    assert decide_labels(probs, cm, "wound-bed-first").tolist() == [1, 0, 2]
+    assert decide_labels(probs.reshape(3, 1, 6), cm).shape == (3, 1)
+    # a class that is neither background nor wound bed competes with the bed as a whole
+    other = ClassMap((ClassInfo(0, "background", (0, 0, 0)), ClassInfo(1, "a", (1, 1, 1), True),
+                      ClassInfo(2, "b", (2, 2, 2), True), ClassInfo(3, "ruler", (3, 3, 3))))
+    p2 = np.array([[0.1, 0.25, 0.2, 0.45], [0.1, 0.3, 0.3, 0.3]])
+    assert decide_labels(p2, other).tolist() == [3, 1]
+    with pytest.raises(ValueError, match="unknown decision rule"):
+        decide_labels(probs, cm, "vote")
+
+
+def test_wound_bed_is_log_sum_exp_of_tissue_logits():
+    cm = ClassMap.default()
+    logits = torch.tensor([[2.0, 0.5, 1.0, -1.0, 0.0, -3.0]])
+    wb = wound_bed_logits(logits, cm)
+    assert wb[0, 0] == pytest.approx(2.0)
+    assert wb[0, 1].item() == pytest.approx(math.log(sum(math.exp(v) for v in [0.5, 1.0, -1.0, 0.0, -3.0])), rel=1e-6)
+    p = wound_bed_probability(logits, cm)
+    probs = torch.softmax(logits, -1)[0]
+    assert p.item() == pytest.approx(probs[1:].sum().item(), rel=1e-6)  # same as summing tissue probabilities
+
+
+def test_two_class_map_uses_the_object_as_wound_bed():
+    cm = ClassMap((ClassInfo(0, "background", (0, 0, 0)), ClassInfo(1, "object", (255, 255, 255))))
+    assert cm.wound_bed_indices == [1]
+
+
+def test_weighted_cross_entropy_ignores_rays_of_weight_zero():
+    logits = torch.tensor([[2.0, 0.0], [0.0, 2.0], [5.0, -5.0]])
+    labels = torch.tensor([0, 1, 1])
+    cw = torch.tensor([0.1, 1.0])
+    with_gate = weighted_cross_entropy(logits, labels, cw, torch.tensor([1.0, 1.0, 0.0]))
+    without = weighted_cross_entropy(logits[:2], labels[:2], cw, torch.tensor([1.0, 1.0]))
+    assert with_gate.item() == pytest.approx(without.item())
+
+
+def _plane_frames(n: int, size: int = 8):
+    from labelsynth.cameras import Camera, look_at
+
+    frames = []
+    for i in range(n):
+        cam = Camera(size, size, size, size, size / 2, size / 2, look_at([0.3 * i - 0.3, 0.1, 2.0], [0, 0, 0], (0, 1, 0)))
+        mask = np.zeros((size, size), np.uint8)
+        mask[:, size // 2 :] = 1
+        frames.append(LabelledFrame(cam, mask, 1.0))
+    return frames
+
+
+def test_semantic_iterations_cover_the_labelled_rays():
+    cfg = SemanticConfig(iterations=400, rays_per_batch=2048, min_epochs=1.0)
+    assert semantic_iterations(cfg, 100_000) == 400  # few rays: the recipe's count stands
+    assert semantic_iterations(cfg, 2_000_000) == math.ceil(2_000_000 / 2048)  # every ray once
+    assert semantic_iterations(SemanticConfig(iterations=10, rays_per_batch=2048, min_epochs=2.0), 4096) == 10
+    assert semantic_iterations(SemanticConfig(iterations=1, rays_per_batch=2048, min_epochs=2.0), 4096) == 4
+    assert semantic_iterations(SemanticConfig(iterations=5, min_epochs=0.0), 10**7) == 5
+    assert semantic_iterations(SemanticConfig(iterations=1, rays_per_batch=4096), 100) == 1  # batch <= rays
+
+
+def test_frames_without_labels_contribute_no_rays():
+    """Per-frame gating: a frame whose mask is all ignore adds nothing to the semantic stage."""
+    from labelsynth.geometry.sdf import SDFConfig, SDFField
+
+    torch.manual_seed(0)
+    field = SDFField(SDFConfig(levels=2, log2_table=8, base_resolution=4, max_resolution=8, feature_dim=3))
+    field.initialise_shape([[0.0, 0.0, -1.0]])
+    grid = OccupancyGrid(16)
+    cm = ClassMap((ClassInfo(0, "background", (0, 0, 0)), ClassInfo(1, "object", (255, 255, 255))))
+    cfg = load_recipe("fast").semantic
+    cfg.train_scale = 1.0
+    frames = _plane_frames(2)
+    baked = bake_semantic_rays(field, grid, frames, cm, cfg, steps=32, progress=False)
+    unlabelled = LabelledFrame(frames[0].camera, np.full((8, 8), 255, np.uint8), 1.0)
+    baked2 = bake_semantic_rays(field, grid, frames + [unlabelled], cm, cfg, steps=32, progress=False)
+    assert len(baked) == 2 * 64 and len(baked2) == len(baked)
+    assert np.array_equal(baked.class_counts, baked2.class_counts)
+    assert torch.equal(baked.labels, baked2.labels)
+    # the rays meet the plane: most of their weight lies on it
+    assert float(baked.weights.sum(1).mean()) > 0.9
+    # class_weighting auto: expert-only labels -> equal-tissue, any prediction -> uniform
+    assert not baked.expert_only and resolve_class_weighting("auto", baked.expert_only) == "uniform"
+    experts = [LabelledFrame(f.camera, f.mask, 1.0, f"e{i}", expert=True) for i, f in enumerate(frames)]
+    baked_e = bake_semantic_rays(field, grid, experts, cm, cfg, steps=32, progress=False)
+    assert baked_e.expert_only and resolve_class_weighting("auto", baked_e.expert_only) == "equal-tissue"
+    assert baked_e.without({"e0"}).expert_only and len(baked_e.without({"e0"})) == 64
+    assert resolve_class_weighting("paper", True) == "paper"
