@@ -1,4 +1,4 @@
-"""Class ids, names, colours and the wound-bed grouping (the contract in DESIGN.md).
+"""Class ids, names, colours and the wound-bed grouping (the contract in the README, "The capture folder").
 
 A capture may carry a ``classes.json`` that replaces the default wound table; a two-class
 table (background + object) turns labelsynth into a foreground-mask tool.
@@ -15,6 +15,7 @@ import numpy as np
 from .errors import ClassMapError
 
 IGNORE_ID = 255
+WOUND_BED = "wound_bed"  # the aggregate of the wound-bed classes (a reserved class name)
 BACKGROUND_ID = 0
 CLASSES_FILE = "classes.json"  # a capture's optional class table
 

@@ -62,7 +62,7 @@ class ExpandResult:
 
 
 def resolve_label_mode(capture: Capture, labels: str | None) -> str:
-    """DESIGN: default ``both`` when both folders exist, else whichever exists."""
+    """The contract: default ``both`` when both folders exist, else whichever exists."""
     if labels is not None and labels not in LABEL_MODES:
         raise LabelsynthError(f"--labels must be one of {', '.join(LABEL_MODES)}, not '{labels}'")
     has_a, has_p = capture.has_annotations, capture.has_predictions
@@ -238,7 +238,7 @@ def expand(
     mm_per_unit: float | None = None,
     annotated_frames: str | list[str] | None = None,
 ) -> ExpandResult:
-    """Fit the semantic field to a capture and write OUT per DESIGN.md.
+    """Fit the semantic field to a capture and write OUT (the README's "The output folder").
 
     Every input is checked first (``capture.check``): a bad file fails in seconds, with all
     the others, before any training and before OUT or OUT.partial exist. The report reads

@@ -1,6 +1,6 @@
 """Masks in, masks out: every supported mask format becomes (H,W) uint8 class ids, 255 = ignore.
 
-Formats read (see DESIGN.md, "Capture folder"):
+Formats read (the README, "The capture folder"):
 
 - single-channel PNG of class ids (8 or 16 bit);
 - palette PNG: indices are kept when each used index carries its own class's colour (our

@@ -17,9 +17,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from ..classes import IGNORE_ID, ClassMap
+from ..classes import IGNORE_ID, WOUND_BED, ClassMap
 
-WOUND_BED = "wound_bed"
 METRICS = ("dice", "recall", "precision", "iou")
 
 

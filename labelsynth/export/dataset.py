@@ -1,6 +1,6 @@
 """Writers for the output folder (labels.h5, masks/*.png) and a torch Dataset over labels.h5.
 
-labels.h5 (contract in DESIGN.md):
+labels.h5 (the contract in the README, "The output folder"):
 
 =============  ============  ==========  =====================================================
 dataset        shape         dtype       notes
@@ -19,7 +19,7 @@ lzf optional), so a Dataset reads one frame without touching the others. File at
 ``recipe`` (YAML/JSON text), ``labelsynth_version``, ``format``/``format_version``,
 ``created`` and any extra attributes the caller passes.
 
-All frames of one file have the same size (DESIGN: masks are the size of their image, and a
+All frames of one file have the same size (the contract: masks are the size of their image, and a
 capture has one image size); a frame of another size is an ``ExportError``.
 
 The writer streams frame by frame into ``labels.h5.partial`` and renames it to ``labels.h5``

@@ -3,7 +3,9 @@
 Volume-rendering every pixel of 50 full-resolution frames is slow on a CPU; the SDF's zero
 level set is extracted once (marching cubes, evaluated finely only near the surface) and each
 pixel's ray is intersected with it (Embree through trimesh when available). The semantic head
-is then evaluated once per pixel at the hit point, where the rendering weights peak.
+is then evaluated at the hit points, where the rendering weights peak: once per vertex of the
+subdivided mesh, blended barycentrically per pixel (``render.field``; ``render.per_pixel``
+evaluates it at every hit instead).
 """
 
 from __future__ import annotations

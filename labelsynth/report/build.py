@@ -12,9 +12,8 @@ import cv2
 import numpy as np
 
 from ..capture.model import Capture
-from ..classes import ClassMap
+from ..classes import WOUND_BED, ClassMap
 from ..errors import LabelsynthError
-from ..evaluation.metrics import WOUND_BED
 from ..export.mesh import MESH_FORMATS, export_labelled_mesh
 from . import plots
 from .consistency import (

@@ -23,7 +23,8 @@ import numpy as np
 from ..cameras import Camera
 from ..capture.model import Capture
 from ..classes import IGNORE_ID, ClassMap
-from ..evaluation.metrics import WOUND_BED, frame_counts
+from ..classes import WOUND_BED
+from ..evaluation.metrics import frame_counts
 from ..progress import track
 
 # Cross-view consistency

@@ -10,6 +10,8 @@ import base64
 import html
 from collections.abc import Mapping, Sequence
 
+from ..classes import WOUND_BED
+
 CSS = """
 body{font-family:-apple-system,Segoe UI,Helvetica,Arial,sans-serif;margin:24px;color:#222;max-width:1400px}
 h1{font-size:22px}h2{font-size:17px;margin-top:28px;border-bottom:1px solid #ddd;padding-bottom:4px}
@@ -51,7 +53,7 @@ def render_html(report: Mapping, figures: Mapping[str, bytes], strips: Mapping[s
     """The whole page from report.json's content and the PNG figures."""
     s = report["summary"]
     frames = report["frames"]
-    keys = s.get("keys", ["wound_bed"])
+    keys = s.get("keys", [WOUND_BED])
     parts = [
         "<!DOCTYPE html><html lang=\"en\"><head><meta charset=\"utf-8\">",
         "<title>labelsynth consistency report</title>",
@@ -81,8 +83,8 @@ def render_html(report: Mapping, figures: Mapping[str, bytes], strips: Mapping[s
     for f in frames:
         rows.append([
             f["name"], ", ".join(f["sources"]) or "–",
-            f["agreement"].get("wound_bed") if f["agreement"] else None,
-            f["loo_dice"].get("wound_bed") if f.get("loo_dice") else None,
+            f["agreement"].get(WOUND_BED) if f["agreement"] else None,
+            f["loo_dice"].get(WOUND_BED) if f.get("loo_dice") else None,
             "yes" if f["flagged"] else "", f["reason"],
         ])
         classes_.append("flag" if f["flagged"] else "")

@@ -11,7 +11,7 @@ matplotlib.use("Agg", force=False)
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
-from ..classes import IGNORE_ID, ClassMap  # noqa: E402
+from ..classes import IGNORE_ID, WOUND_BED, ClassMap  # noqa: E402
 
 DPI = 96
 
@@ -37,10 +37,10 @@ def agreement_plot(frames: Sequence[dict], keys: Sequence[str], classes: ClassMa
     fig, ax = plt.subplots(figsize=(max(6.0, 0.22 * len(names) + 2), 3.2))
     by_source = {"annotation": ("o", "tab:blue"), "prediction": (".", "tab:orange")}
     for source, (marker, color) in by_source.items():
-        y = [f.get("agreement_by_source", {}).get(source, {}).get("wound_bed", np.nan) for f in frames]
+        y = [f.get("agreement_by_source", {}).get(source, {}).get(WOUND_BED, np.nan) for f in frames]
         if np.isfinite(np.asarray(y, dtype=float)).any():
             ax.plot(x, y, marker, color=color, label=f"{source} vs field", linestyle="none")
-    y = [f.get("loo_dice", {}).get("wound_bed", np.nan) if f.get("loo_dice") else np.nan for f in frames]
+    y = [f.get("loo_dice", {}).get(WOUND_BED, np.nan) if f.get("loo_dice") else np.nan for f in frames]
     if np.isfinite(np.asarray(y, dtype=float)).any():
         ax.plot(x, y, "D", color="tab:green", label="leave-one-out (annotation)", linestyle="none", markersize=7)
     for i, f in enumerate(frames):
