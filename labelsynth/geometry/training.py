@@ -118,6 +118,54 @@ def _band(cfg: GeometryConfig, field: SDFField) -> float:
     return min(cfg.occupancy_band / float(field.inv_s.detach()), cfg.occupancy_max_band)
 
 
+def _geometry_optimiser(field: SDFField, cfg: GeometryConfig):
+    """Adam over the hash table, the MLPs and the NeuS variance; linear warm-up, then exponential
+    decay to ``lr * lr_final_factor`` (the hash table needs a large rate early and a small one late)."""
+    params = [
+        {"params": [field.encoding.table], "lr": cfg.lr},
+        {"params": [p for n, p in field.named_parameters() if n != "encoding.table" and n != "variance"], "lr": cfg.lr},
+        {"params": [field.variance], "lr": cfg.lr},
+    ]
+    opt = torch.optim.Adam(params, betas=(cfg.adam_beta1, cfg.adam_beta2), eps=cfg.adam_eps)
+    gamma = cfg.lr_final_factor ** (1.0 / max(cfg.iterations, 1))
+    warmup = max(cfg.warmup_iterations, 1)
+    sched = torch.optim.lr_scheduler.LambdaLR(opt, lambda it: min(1.0, (it + 1) / warmup) * gamma**it)
+    return opt, sched
+
+
+def _apply_schedules(field: SDFField, cfg: GeometryConfig, it: int) -> None:
+    """Coarse to fine: switch on hash levels progressively, and raise the sharpness floor
+    geometrically from ``inv_s_start`` to ``inv_s_end`` over the first ``inv_s_ramp`` of training."""
+    field.encoding.set_active_levels(cfg.levels_start + it // max(cfg.levels_every, 1))
+    ramp = min(1.0, it / max(cfg.inv_s_ramp * cfg.iterations, 1.0))
+    field.inv_s_floor.fill_(cfg.inv_s_start * (cfg.inv_s_end / cfg.inv_s_start) ** ramp)
+
+
+def _eikonal_loss(field: SDFField, positions: torch.Tensor, cfg: GeometryConfig, gen: torch.Generator) -> torch.Tensor:
+    """|grad sdf| = 1 on a subset of the ray samples (near the surface, where it matters) plus
+    random points of the cube (so the whole cube stays a distance function); these are the only
+    points that pay for second derivatives."""
+    pts = positions
+    if pts.shape[0] > cfg.eikonal_samples:
+        pick = torch.randint(0, pts.shape[0], (cfg.eikonal_samples,), device=pts.device, generator=gen)
+        pts = pts[pick]
+    rand_pts = torch.rand(cfg.eikonal_samples // 4, 3, device=pts.device, generator=gen) * 2 - 1
+    _, _, eik_grad = field.sdf_and_gradient(torch.cat([pts, rand_pts]), create_graph=True)
+    return ((eik_grad.norm(dim=-1) - 1.0) ** 2).mean()
+
+
+def _next_ray_count(n_rays: int, n_samples: int, cfg: GeometryConfig) -> int:
+    """Sample-count-driven batch: as the band tightens, more rays fit the same sample budget."""
+    if n_samples == 0:
+        return n_rays
+    return int(min(cfg.max_rays, max(256, n_rays * 0.8 + 0.2 * n_rays * cfg.target_samples / n_samples)))
+
+
+def _ema(previous: float, value: float, first: bool) -> float:
+    """The progress bar's smoothed value (and the reported final PSNR): 5% per step."""
+    return value if first else 0.95 * previous + 0.05 * value
+
+
 def train_geometry(
     field: SDFField,
     bank: RayBank,
@@ -131,16 +179,7 @@ def train_geometry(
     torch.manual_seed(seed)
     gen = torch.Generator(device=device).manual_seed(seed)
     field.train()
-    params = [
-        {"params": [field.encoding.table], "lr": cfg.lr},
-        {"params": [p for n, p in field.named_parameters() if n != "encoding.table" and n != "variance"], "lr": cfg.lr},
-        {"params": [field.variance], "lr": cfg.lr},
-    ]
-    opt = torch.optim.Adam(params, betas=(cfg.adam_beta1, cfg.adam_beta2), eps=cfg.adam_eps)
-    gamma = cfg.lr_final_factor ** (1.0 / max(cfg.iterations, 1))
-    sched = torch.optim.lr_scheduler.LambdaLR(
-        opt, lambda it: min(1.0, (it + 1) / max(cfg.warmup_iterations, 1)) * gamma**it  # warm-up, then exponential decay
-    )
+    opt, sched = _geometry_optimiser(field, cfg)
     grid = OccupancyGrid(cfg.occupancy_resolution, device, margin=cfg.occupancy_margin, full_every=cfg.occupancy_full_every)
     n_rays = min(1024, cfg.max_rays)
     psnr_ema, spr_ema, occ = 0.0, 0.0, 1.0
@@ -148,40 +187,24 @@ def train_geometry(
     with make_progress(progress) as bar:
         task = bar.add_task("geometry", total=cfg.iterations, status="")
         for it in range(cfg.iterations):
-            field.encoding.set_active_levels(cfg.levels_start + it // max(cfg.levels_every, 1))
-            ramp = min(1.0, it / max(cfg.inv_s_ramp * cfg.iterations, 1.0))
-            field.inv_s_floor.fill_(cfg.inv_s_start * (cfg.inv_s_end / cfg.inv_s_start) ** ramp)
+            _apply_schedules(field, cfg, it)
             if it % cfg.occupancy_every == 0:
                 occ = grid.update(field.sdf_batched, _band(cfg, field))
             origins, dirs, target = bank.sample(n_rays, gen)
             cos_ratio = min(1.0, it / max(cfg.cos_anneal_iters, 1))
-            rgb, opacity, samples = render_rays_rgb(
-                field, grid, origins, dirs, cos_ratio, cfg.march_steps, train=True
-            )
-            loss = F.l1_loss(rgb, target)
-            # Eikonal on a subset of ray samples (near the surface, where it matters) plus random
-            # points of the cube (so the whole cube stays a distance function).
-            pts = samples.positions
-            if pts.shape[0] > cfg.eikonal_samples:
-                pick = torch.randint(0, pts.shape[0], (cfg.eikonal_samples,), device=device, generator=gen)
-                pts = pts[pick]
-            rand_pts = torch.rand(cfg.eikonal_samples // 4, 3, device=device, generator=gen) * 2 - 1
-            _, _, eik_grad = field.sdf_and_gradient(torch.cat([pts, rand_pts]), create_graph=True)
-            loss = loss + cfg.eikonal_weight * ((eik_grad.norm(dim=-1) - 1.0) ** 2).mean()
+            rgb, _, samples = render_rays_rgb(field, grid, origins, dirs, cos_ratio, cfg.march_steps, train=True)
+            loss = F.l1_loss(rgb, target) + cfg.eikonal_weight * _eikonal_loss(field, samples.positions, cfg, gen)
             opt.zero_grad(set_to_none=True)
             loss.backward()
             opt.step()
             sched.step()
             n_samples = samples.positions.shape[0]
             spr = n_samples / max(n_rays, 1)
-            # Sample-count-driven batch: as the band tightens, more rays fit the same budget.
-            if n_samples > 0:
-                n_rays = int(min(cfg.max_rays, max(256, n_rays * 0.8 + 0.2 * n_rays * cfg.target_samples / n_samples)))
+            n_rays = _next_ray_count(n_rays, n_samples, cfg)
             with torch.no_grad():
                 mse = F.mse_loss(rgb, target).item()
-            psnr = -10 * math.log10(max(mse, 1e-10))
-            psnr_ema = psnr if it == 0 else 0.95 * psnr_ema + 0.05 * psnr
-            spr_ema = spr if it == 0 else 0.95 * spr_ema + 0.05 * spr
+            psnr_ema = _ema(psnr_ema, -10 * math.log10(max(mse, 1e-10)), it == 0)
+            spr_ema = _ema(spr_ema, spr, it == 0)
             bar.update(task, advance=1, status=f"psnr {psnr_ema:5.2f} rays {n_rays} spr {spr_ema:4.1f} s {float(field.inv_s.detach()):6.0f}")
     grid.update(field.sdf_batched, _band(cfg, field), jitter=False, full=True)
     field.eval()
