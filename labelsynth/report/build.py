@@ -34,7 +34,7 @@ REPORT_JSON = "report.json"
 REPORT_HTML = "report.html"
 
 
-def _inputs(capture: Capture, mode: str) -> tuple[dict[str, np.ndarray], dict[str, np.ndarray]]:
+def _inputs(capture: Capture) -> tuple[dict[str, np.ndarray], dict[str, np.ndarray]]:
     """Every annotation and prediction of the capture, by frame name."""
     ann, pred = {}, {}
     for i, f in enumerate(capture.frames):
@@ -50,6 +50,111 @@ def _inputs(capture: Capture, mode: str) -> tuple[dict[str, np.ndarray], dict[st
 def _median_over_present(frames: list[dict], field: str, key: str) -> float | None:
     vals = [f[field][key] for f in frames if f.get(field) and key in f.get("_present", ())]
     return float(np.median(vals)) if vals else None
+
+
+def _agreement_rows(names: list[str], ann: dict, pred: dict, masks: dict, classes: ClassMap) -> list[dict]:
+    """Step 1: how far every input mask is from the field's mask of its frame (one row per frame)."""
+    frames: list[dict] = []
+    for name in names:
+        sources, by_source = [], {}
+        for source, store in (("annotation", ann), ("prediction", pred)):
+            if name in store:
+                sources.append(source)
+                by_source[source] = agreement(store[name], masks[name], classes)
+        ref = ann.get(name, pred.get(name))
+        present = set()
+        if ref is not None:
+            pa, pb = class_presence(ref, classes), class_presence(masks[name], classes)
+            present = {k for k in pa if pa[k] > 0 or pb[k] > 0}
+        frames.append({
+            "name": name,
+            "annotated": name in ann,
+            "sources": sources,
+            "agreement": by_source.get("annotation", by_source.get("prediction", {})),
+            "agreement_by_source": by_source,
+            "field_pixels": class_presence(masks[name], classes),
+            "flagged": False,
+            "reason": "",
+            "_present": present,
+        })
+    return frames
+
+
+def _leave_one_out(sem: "SemanticField", capture: Capture, ann: dict, taught: dict,
+                   refit: Callable[[str], None] | None, progress: bool) -> dict[str, np.ndarray]:
+    """Step 2: each annotated frame judged by a field that did not learn from it (the honest test:
+    a field that learnt a wrong mask agrees with it)."""
+    if not ann:
+        return {}
+    if refit is None:
+        raise ValueError("build_report: the leave-one-view-out needs a refit callable")
+    # only frames with someone else left to learn from
+    candidates = [n for n in capture.names if n in ann and any(t != n for t in taught)]
+    return leave_one_out(sem, capture, candidates, refit, progress=progress)
+
+
+def _flag(frames: list[dict], ann: dict, pred: dict, masks: dict, loo_masks: dict, classes: ClassMap) -> None:
+    """Step 4: flag the outliers, annotated frames by their leave-one-out Dice, others by agreement."""
+    checks = []
+    for f in frames:
+        name = f["name"]
+        if f["annotated"] and f.get("loo_dice"):
+            keys = checked_keys(ann[name], loo_masks[name], classes)
+            checks.append(Check(name, "loo", {k: 1.0 - f["loo_dice"][k] for k in keys}))
+        elif f["sources"]:
+            ref = ann.get(name, pred.get(name))
+            keys = checked_keys(ref, masks[name], classes)
+            checks.append(Check(name, "agreement", {k: 1.0 - f["agreement"][k] for k in keys}))
+    flags = flag_frames(checks)
+    for f in frames:
+        f["flagged"], f["reason"] = flags.get(f["name"], (False, ""))
+
+
+def _summary(capture: Capture, mode: str, frames: list[dict], ann: dict, pred: dict, pairwise: list,
+             mesh_info: dict | None) -> dict:
+    """Step 6: the numbers an annotator reads first."""
+    classes = capture.classes
+    keys = [WOUND_BED] + [classes.classes[i].name for i in classes.wound_bed_indices]
+    shared = [v for i, row in enumerate(pairwise) for j, v in enumerate(row) if i < j and v is not None]
+    return {
+        "capture": str(capture.root),
+        "labels": mode,
+        "num_frames": len(frames),
+        "num_annotated": len(ann),
+        "num_predicted": len(pred),
+        "keys": keys,
+        "median_agreement": {k: _median_over_present(frames, "agreement", k) for k in keys},
+        "median_loo_dice": {k: _median_over_present(frames, "loo_dice", k) for k in keys},
+        "mean_pairwise_dice": float(np.mean(shared)) if shared else None,
+        "flagged": [f["name"] for f in frames if f["flagged"]],
+        "mesh": mesh_info,
+        "flag_rule": "1 - Dice > median + max(3 * 1.4826 * MAD, 0.05) and > 0.15, per class, "
+                     "annotated frames by leave-one-out Dice, others by agreement",
+    }
+
+
+def _figures(capture: Capture, report: dict, ann: dict, pred: dict, masks: dict,
+             loo_masks: dict) -> tuple[dict, dict]:
+    """Step 7: the plots and, for every flagged frame, its overlay strip."""
+    classes, names, frames = capture.classes, capture.names, report["frames"]
+    keys, views = report["summary"]["keys"], report["views"]
+    figures = {"agreement": plots.agreement_plot(frames, keys, classes),
+               "class_area": plots.class_area_plot(names, [f["field_pixels"] for f in frames], classes)}
+    if views:
+        figures["pairwise"] = plots.pairwise_heatmap(views, report["pairwise"])
+    index = {n: i for i, n in enumerate(names)}
+    strips = {}
+    for f in frames:
+        if not f["flagged"]:
+            continue
+        name = f["name"]
+        if name in loo_masks:
+            inp, fm, label = ann[name], loo_masks[name], "field without this frame"
+        else:
+            inp, fm, label = ann.get(name, pred.get(name)), masks[name], "field"
+        strips[name] = plots.overlay_strip(capture.load_image(index[name]), inp, fm, classes,
+                                           f"{name}: {f['reason']}", label)
+    return figures, strips
 
 
 def build_report(
@@ -85,110 +190,32 @@ def build_report(
         raise LabelsynthError(f"report: no field mask for frame(s) {', '.join(missing[:5])}")
     if mesh_format is not None and mesh_format not in MESH_FORMATS:
         raise LabelsynthError(f"--mesh-format must be one of {', '.join(MESH_FORMATS)}, not '{mesh_format}'")
-    ann, pred = _inputs(capture, mode)
-
-    # 1. agreement of every input with the field
-    frames: list[dict] = []
-    for name in names:
-        sources, by_source = [], {}
-        for source, store in (("annotation", ann), ("prediction", pred)):
-            if name in store:
-                sources.append(source)
-                by_source[source] = agreement(store[name], masks[name], classes)
-        ref = ann.get(name, pred.get(name))
-        present = set()
-        if ref is not None:
-            pa, pb = class_presence(ref, classes), class_presence(masks[name], classes)
-            present = {k for k in pa if pa[k] > 0 or pb[k] > 0}
-        frames.append({
-            "name": name,
-            "annotated": name in ann,
-            "sources": sources,
-            "agreement": by_source.get("annotation", by_source.get("prediction", {})),
-            "agreement_by_source": by_source,
-            "field_pixels": class_presence(masks[name], classes),
-            "flagged": False,
-            "reason": "",
-            "_present": present,
-        })
-
-    # 2. leave-one-view-out for the annotated frames
-    loo_masks: dict[str, np.ndarray] = {}
-    if loo and ann:
-        if refit is None:
-            raise ValueError("build_report: the leave-one-view-out needs a refit callable")
-        candidates = [n for n in names if n in ann and any(t != n for t in taught)]  # someone else left to learn from
-        loo_masks = leave_one_out(sem, capture, candidates, refit, progress=progress)
+    ann, pred = _inputs(capture)
+    frames = _agreement_rows(names, ann, pred, masks, classes)
+    loo_masks = _leave_one_out(sem, capture, ann, taught, refit, progress) if loo else {}
     for f in frames:
         if f["annotated"]:
             m = loo_masks.get(f["name"])
             f["loo_dice"] = None if m is None else agreement(ann[f["name"]], m, classes)
 
-    # 3. cross-view consistency of the inputs the field learnt from
+    # Step 3: cross-view consistency of the inputs the field learnt from
     views = [n for n in names if n in taught]
     cams = capture.unit_cameras()
     index = {n: i for i, n in enumerate(names)}
     pairwise = pairwise_consistency(
-        sem.caster(), [cams[index[n]] for n in views], [taught[n] for n in views],
-        classes, progress=progress,
+        sem.caster(), [cams[index[n]] for n in views], [taught[n] for n in views], classes, progress=progress,
     ) if views else []
 
-    # 4. flags
-    checks = []
-    for f in frames:
-        name = f["name"]
-        if f["annotated"] and f.get("loo_dice"):
-            keys = checked_keys(ann[name], loo_masks[name], classes)
-            checks.append(Check(name, "loo", {k: 1.0 - f["loo_dice"][k] for k in keys}))
-        elif f["sources"]:
-            ref = ann.get(name, pred.get(name))
-            keys = checked_keys(ref, masks[name], classes)
-            checks.append(Check(name, "agreement", {k: 1.0 - f["agreement"][k] for k in keys}))
-    flags = flag_frames(checks)
-    for f in frames:
-        f["flagged"], f["reason"] = flags.get(f["name"], (False, ""))
-
-    # 5. the labelled surface
+    _flag(frames, ann, pred, masks, loo_masks, classes)
+    # Step 5: the labelled surface
     mesh_info = None
     if mesh_format is not None:
         mesh_info = export_labelled_mesh(sem, out_dir, mesh_format=mesh_format, mm_per_unit=mm_per_unit).to_dict()
-
-    keys = [WOUND_BED] + [classes.classes[i].name for i in classes.wound_bed_indices]
-    shared = [v for i, row in enumerate(pairwise) for j, v in enumerate(row) if i < j and v is not None]
-    summary = {
-        "capture": str(capture.root),
-        "labels": mode,
-        "num_frames": len(names),
-        "num_annotated": len(ann),
-        "num_predicted": len(pred),
-        "keys": keys,
-        "median_agreement": {k: _median_over_present(frames, "agreement", k) for k in keys},
-        "median_loo_dice": {k: _median_over_present(frames, "loo_dice", k) for k in keys},
-        "mean_pairwise_dice": float(np.mean(shared)) if shared else None,
-        "flagged": [f["name"] for f in frames if f["flagged"]],
-        "mesh": mesh_info,
-        "flag_rule": "1 - Dice > median + max(3 * 1.4826 * MAD, 0.05) and > 0.15, per class, "
-                     "annotated frames by leave-one-out Dice, others by agreement",
-    }
+    summary = _summary(capture, mode, frames, ann, pred, pairwise, mesh_info)
     for f in frames:
         f.pop("_present")
     report = {"frames": frames, "views": views, "pairwise": pairwise, "summary": summary}
-
-    # 6. figures and page
-    figures = {"agreement": plots.agreement_plot(frames, keys, classes),
-               "class_area": plots.class_area_plot(names, [f["field_pixels"] for f in frames], classes)}
-    if views:
-        figures["pairwise"] = plots.pairwise_heatmap(views, pairwise)
-    strips = {}
-    for f in frames:
-        if not f["flagged"]:
-            continue
-        name, i = f["name"], index[f["name"]]
-        if name in loo_masks:
-            inp, fm, label = ann[name], loo_masks[name], "field without this frame"
-        else:
-            inp, fm, label = ann.get(name, pred.get(name)), masks[name], "field"
-        strips[name] = plots.overlay_strip(capture.load_image(i), inp, fm, classes, f"{name}: {f['reason']}", label)
+    figures, strips = _figures(capture, report, ann, pred, masks, loo_masks)
     summary["seconds"] = time.time() - t0
     (out_dir / REPORT_JSON).write_text(json.dumps(report, indent=2))
     (out_dir / REPORT_HTML).write_text(render_html(report, figures, strips), encoding="utf-8")
