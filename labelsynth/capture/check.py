@@ -15,13 +15,16 @@ from collections.abc import Mapping, Sequence
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import NamedTuple
+from typing import TYPE_CHECKING, NamedTuple
 
 from ..classes import CLASSES_FILE, ClassMap
 from ..errors import CaptureError, CheckError
 from . import images as _images
 from . import masks as _masks  # module lookups at call time: a patched reader is the one used
 from .model import Capture, file_stamp
+
+if TYPE_CHECKING:
+    import numpy as np
 
 LABEL_CHOICES = ("annotations", "predictions", "both")
 
@@ -95,7 +98,26 @@ def check_capture(
         if problem:
             report.problems.append(problem)
 
-    tasks: list[tuple[str, Path, tuple[int, int] | None, str]] = []  # kind, path, size, role
+    tasks = _read_tasks(capture, folders, images, extra_masks)
+    n_workers = max(1, min(workers or _cpu_count(), len(tasks) or 1))
+    with ThreadPoolExecutor(max_workers=n_workers, thread_name_prefix="labelsynth-check") as pool:
+        for (_, path, _, _), (problem, mask, stamp) in zip(tasks, pool.map(lambda t: _check_file(capture, t), tasks)):
+            if problem:
+                report.problems.append(problem)
+            elif mask is not None and cache and capture.cache_mask(path, mask, stamp):
+                report.cached_masks += 1
+    report.files = len(tasks)
+    report.seconds = time.perf_counter() - t0
+    return report
+
+
+_Task = tuple[str, Path, tuple[int, int] | None, str]  # kind ("image" or "mask"), path, size, role
+
+
+def _read_tasks(capture: Capture, folders: Sequence[str], images: bool, extra_masks: Sequence[ExtraMask]) -> list[_Task]:
+    """Every file the run will read, frame by frame, then the extra masks: exactly what the run
+    reads, so a check never fails a run on a file it would not have opened."""
+    tasks: list[_Task] = []
     for frame in capture.frames:
         if images:
             tasks.append(("image", frame.image_path, frame.size, "image"))
@@ -104,33 +126,26 @@ def check_capture(
         if "predictions" in folders and frame.prediction_path is not None:
             tasks.append(("mask", frame.prediction_path, frame.size, "prediction"))
     tasks += [("mask", Path(m.path), m.size, m.role) for m in extra_masks]
+    return tasks
 
-    def run(task: tuple[str, Path, tuple[int, int] | None, str]):
-        kind, path, size, role = task
-        if not path.is_file():
-            return f"{path}: {role} {'file' if kind == 'image' else 'mask'} missing", None, None
-        stamp = file_stamp(path)
-        try:
-            if kind == "image":
-                _images.read_image(path, size, capture.white_background)
-                return None, None, None
-            mask = _masks.read_mask(path, size, capture.classes, capture.color_table, kind=capture.mask_kind(path))
-            return None, mask, stamp
-        except CaptureError as exc:
-            return str(exc).splitlines()[0], None, None
-        except Exception as exc:  # noqa: BLE001 - one odd file must not hide the others' problems
-            return f"{path}: cannot read {kind} ({type(exc).__name__}: {exc})", None, None
 
-    n_workers = max(1, min(workers or _cpu_count(), len(tasks) or 1))
-    with ThreadPoolExecutor(max_workers=n_workers, thread_name_prefix="labelsynth-check") as pool:
-        for (_, path, _, _), (problem, mask, stamp) in zip(tasks, pool.map(run, tasks)):
-            if problem:
-                report.problems.append(problem)
-            elif mask is not None and cache and capture.cache_mask(path, mask, stamp):
-                report.cached_masks += 1
-    report.files = len(tasks)
-    report.seconds = time.perf_counter() - t0
-    return report
+def _check_file(capture: Capture, task: _Task) -> tuple[str | None, np.ndarray | None, tuple[int, int] | None]:
+    """(problem line or None, decoded mask or None, its file stamp or None) for one file, decoded
+    by the run's own reader so the check finds what the run would; never raises for a bad file."""
+    kind, path, size, role = task
+    if not path.is_file():
+        return f"{path}: {role} {'file' if kind == 'image' else 'mask'} missing", None, None
+    stamp = file_stamp(path)
+    try:
+        if kind == "image":
+            _images.read_image(path, size, capture.white_background)
+            return None, None, None
+        mask = _masks.read_mask(path, size, capture.classes, capture.color_table, kind=capture.mask_kind(path))
+        return None, mask, stamp
+    except CaptureError as exc:
+        return str(exc).splitlines()[0], None, None
+    except Exception as exc:  # noqa: BLE001 - one odd file must not hide the others' problems
+        return f"{path}: cannot read {kind} ({type(exc).__name__}: {exc})", None, None
 
 
 def compare_class_tables(a: ClassMap, a_name: str, b: ClassMap, b_name: str) -> str | None:

@@ -51,29 +51,58 @@ def load_capture(
     if not root.is_dir():
         raise CaptureError(f"{root}: capture folder not found")
 
-    posed = _read_poses(root)
-    if posed.skipped:
-        shown = ", ".join(posed.skipped[:5]) + (" ..." if len(posed.skipped) > 5 else "")
-        warnings.warn(
-            f"{root}: {len(posed.skipped)} frame(s) skipped because their image file is missing ({shown})",
-            stacklevel=2,
-        )
-    if not posed.frames:
-        raise CaptureError(f"{root}: none of the {len(posed.skipped)} posed frames has an image file")
-    _check_unique_names(posed.frames, root)
-    posed.frames.sort(key=lambda f: f.name)  # deterministic, whatever order the file lists
-
+    posed = _posed_frames(root)
     classes_json = root / CLASSES_FILE
     if classes is None:
         classes = ClassMap.of_capture(root, posed.classes)
     labelmap = root / "labelmap.txt"
     color_table = color_table_for(classes, labelmap if labelmap.is_file() else None)
+    _attach_masks(root, posed, classes, classes_json)
 
+    if annotated_frames is not None:
+        _keep_annotations(posed.frames, annotated_frames, root)
+
+    cameras = [f.camera for f in posed.frames]
+    normalization = posed.normalization or region_of_interest(cameras, posed.points)
+    return Capture(
+        root=root,
+        frames=posed.frames,
+        classes=classes,
+        normalization=normalization,
+        points=posed.points,
+        color_table=color_table,
+        white_background=posed.white_background,
+        source=posed.source,
+        mask_kinds=dict(posed.mask_kinds),
+    )
+
+
+def _posed_frames(root: Path) -> PosedFrames:
+    """The pose source's frames that have an image, sorted by name (deterministic, whatever
+    order the file lists); frames without an image are skipped with one warning."""
+    posed = _read_poses(root)
+    if posed.skipped:
+        shown = ", ".join(posed.skipped[:5]) + (" ..." if len(posed.skipped) > 5 else "")
+        warnings.warn(
+            f"{root}: {len(posed.skipped)} frame(s) skipped because their image file is missing ({shown})",
+            stacklevel=3,  # load_capture's caller
+        )
+    if not posed.frames:
+        raise CaptureError(f"{root}: none of the {len(posed.skipped)} posed frames has an image file")
+    _check_unique_names(posed.frames, root)
+    posed.frames.sort(key=lambda f: f.name)  # deterministic, whatever order the file lists
+    return posed
+
+
+def _attach_masks(root: Path, posed: PosedFrames, classes: ClassMap, classes_json: Path) -> None:
+    """Point each frame at its annotation and prediction masks (in place). An annotations/
+    folder overrides the layout's own masks, since two teaching sources would disagree; a mask
+    without a frame is an error, as its name is likely a typo."""
     found = {folder: _mask_files(root / folder) for folder in MASK_FOLDERS}
     if posed.mask_kinds and found["annotations"]:
         layout_masks = ", ".join(f"{p.name}/" for p in posed.mask_kinds)
         warnings.warn(f"{root / 'annotations'}: these annotations teach; the {layout_masks} masks are ignored",
-                      stacklevel=2)
+                      stacklevel=3)  # load_capture's caller
         for f in posed.frames:
             f.annotation_path = None
         posed.mask_kinds = {}
@@ -92,23 +121,6 @@ def load_capture(
                     continue  # its frame was skipped (missing image); already warned
                 raise CaptureError(f"{mask_path}: no frame named '{name}' (masks are named <image stem>.png)")
             setattr(frame, "annotation_path" if folder == "annotations" else "prediction_path", mask_path)
-
-    if annotated_frames is not None:
-        _keep_annotations(posed.frames, annotated_frames, root)
-
-    cameras = [f.camera for f in posed.frames]
-    normalization = posed.normalization or region_of_interest(cameras, posed.points)
-    return Capture(
-        root=root,
-        frames=posed.frames,
-        classes=classes,
-        normalization=normalization,
-        points=posed.points,
-        color_table=color_table,
-        white_background=posed.white_background,
-        source=posed.source,
-        mask_kinds=dict(posed.mask_kinds),
-    )
 
 
 def capture_white_background(path: str | Path) -> bool:

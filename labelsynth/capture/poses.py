@@ -13,6 +13,7 @@ import os
 import tempfile
 import time
 import warnings
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -142,67 +143,16 @@ def estimate_poses(
 
 
 def _run_sfm(pycolmap, capture: Path, images_dir: Path, names: list[str], target: Path, out: Path | None,
-             mode: str, camera_model: str, say, start: float) -> PoseReport:
-    device = pycolmap.Device.cpu
+             mode: str, camera_model: str, say: Callable[[str], None], start: float) -> PoseReport:
+    """COLMAP's steps in a temporary folder (features, matches, mapping), then the one file kept."""
     with tempfile.TemporaryDirectory(prefix="labelsynth-poses-") as tmp:
         db = Path(tmp) / "database.db"
-        reader = pycolmap.ImageReaderOptions()
-        reader.camera_model = camera_model
-        extraction = pycolmap.FeatureExtractionOptions()
-        extraction.use_gpu = False
-        say(f"extracting features from {len(names)} images")
-        pycolmap.extract_features(db, images_dir, image_names=names, camera_mode=pycolmap.CameraMode.SINGLE,
-                                  reader_options=reader, extraction_options=extraction, device=device)
-        say(f"{mode} matching")
-        match_opts = pycolmap.FeatureMatchingOptions()
-        match_opts.use_gpu = False
-        if mode == "exhaustive":
-            pycolmap.match_exhaustive(db, matching_options=match_opts, device=device)
-        else:
-            pairing = pycolmap.SequentialPairingOptions()
-            pairing.overlap = SEQUENTIAL_OVERLAP
-            pairing.quadratic_overlap = True
-            pairing.loop_detection = False
-            pycolmap.match_sequential(db, matching_options=match_opts, pairing_options=pairing, device=device)
-        say("incremental mapping")
-        opts = pycolmap.IncrementalPipelineOptions()
-        opts.random_seed = 0
-        sparse = Path(tmp) / "sparse"
-        sparse.mkdir()
-        recs = pycolmap.incremental_mapping(db, images_dir, sparse, options=opts)
-        if not recs:
-            raise LabelsynthError(f"{capture}: reconstruction failed (no two images could be registered)")
-        rec = max(recs.values(), key=lambda r: r.num_reg_images())
-        if rec.num_reg_images() < 2:
-            raise LabelsynthError(f"{capture}: reconstruction failed (fewer than 2 images registered)")
-
-        cams = {cid: cam for cid, cam in rec.cameras.items()}
-        if len(cams) != 1:  # one shared camera was asked for; guard against surprises
-            warnings.warn(f"{capture}: SfM produced {len(cams)} cameras; writing the first one as shared",
-                          stacklevel=2)
-        camera = next(iter(cams.values()))
-        intr = _opencv_intrinsics(camera)
-        posed = {}
-        for image in rec.images.values():
-            if not image.has_pose:
-                continue
-            R, t = _cam_from_world(image)
-            posed[image.name] = w2c_cv_to_c2w_gl(R, t)
-        registered = [n for n in names if n in posed]
-        unregistered = [n for n in names if n not in posed]
-        frames = [{"file_path": f"images/{n}", "transform_matrix": [[float(v) for v in row] for row in posed[n]]}
-                  for n in registered]
-        data = {**intr, "frames": frames,
-                "sfm": {"tool": f"pycolmap {pycolmap.__version__}", "matching": mode,
-                        "registered": len(registered), "unregistered": unregistered,
-                        "mean_reprojection_error": float(rec.compute_mean_reprojection_error()),
-                        "num_points": int(rec.num_points3D())}}
-        target.parent.mkdir(parents=True, exist_ok=True)
-        if out is not None:
-            ply = target.parent / "points3D.ply"
-            rec.export_PLY(str(ply))
-            data["ply_file_path"] = os.path.relpath(ply, target.parent)
-        write_text_atomic(target, json.dumps(data, indent=2))
+        _extract_features(pycolmap, db, images_dir, names, camera_model, say)
+        _match_features(pycolmap, db, mode, say)
+        rec = _largest_reconstruction(pycolmap, db, images_dir, Path(tmp) / "sparse", capture, say)
+        camera = _shared_camera(rec, capture)
+        registered, unregistered, data = _transforms(pycolmap, rec, camera, names, mode)
+        _write_transforms(rec, data, target, out)
 
     if unregistered:
         shown = ", ".join(unregistered[:8]) + (" ..." if len(unregistered) > 8 else "")
@@ -213,3 +163,91 @@ def _run_sfm(pycolmap, capture: Path, images_dir: Path, names: list[str], target
                       mean_reprojection_error=float(rec.compute_mean_reprojection_error()),
                       num_points=int(rec.num_points3D()), camera_model=camera.model_name, matching=mode,
                       seconds=time.perf_counter() - start)
+
+
+def _extract_features(pycolmap, db: Path, images_dir: Path, names: list[str], camera_model: str,
+                      say: Callable[[str], None]) -> None:
+    """SIFT on the CPU for exactly the listed frames, one camera shared by all (one phone)."""
+    reader = pycolmap.ImageReaderOptions()
+    reader.camera_model = camera_model
+    extraction = pycolmap.FeatureExtractionOptions()
+    extraction.use_gpu = False
+    say(f"extracting features from {len(names)} images")
+    pycolmap.extract_features(db, images_dir, image_names=names, camera_mode=pycolmap.CameraMode.SINGLE,
+                              reader_options=reader, extraction_options=extraction, device=pycolmap.Device.cpu)
+
+
+def _match_features(pycolmap, db: Path, mode: str, say: Callable[[str], None]) -> None:
+    """Exhaustive matching for small sets; for videos, sequential with a wide overlap (loop
+    detection would need a vocabulary tree, which we cannot assume)."""
+    say(f"{mode} matching")
+    match_opts = pycolmap.FeatureMatchingOptions()
+    match_opts.use_gpu = False
+    if mode == "exhaustive":
+        pycolmap.match_exhaustive(db, matching_options=match_opts, device=pycolmap.Device.cpu)
+    else:
+        pairing = pycolmap.SequentialPairingOptions()
+        pairing.overlap = SEQUENTIAL_OVERLAP
+        pairing.quadratic_overlap = True
+        pairing.loop_detection = False
+        pycolmap.match_sequential(db, matching_options=match_opts, pairing_options=pairing,
+                                  device=pycolmap.Device.cpu)
+
+
+def _largest_reconstruction(pycolmap, db: Path, images_dir: Path, sparse: Path, capture: Path,
+                            say: Callable[[str], None]):
+    """Incremental mapping (seeded, so reruns agree); the model with the most frames is kept,
+    and one with fewer than two frames is an error, since it gives no usable poses."""
+    say("incremental mapping")
+    opts = pycolmap.IncrementalPipelineOptions()
+    opts.random_seed = 0
+    sparse.mkdir()
+    recs = pycolmap.incremental_mapping(db, images_dir, sparse, options=opts)
+    if not recs:
+        raise LabelsynthError(f"{capture}: reconstruction failed (no two images could be registered)")
+    rec = max(recs.values(), key=lambda r: r.num_reg_images())
+    if rec.num_reg_images() < 2:
+        raise LabelsynthError(f"{capture}: reconstruction failed (fewer than 2 images registered)")
+    return rec
+
+
+def _shared_camera(rec, capture: Path):
+    """The one camera every frame shares (transforms.json holds a single set of intrinsics)."""
+    cams = {cid: cam for cid, cam in rec.cameras.items()}
+    if len(cams) != 1:  # one shared camera was asked for; guard against surprises
+        warnings.warn(f"{capture}: SfM produced {len(cams)} cameras; writing the first one as shared",
+                      stacklevel=3)  # the line in estimate_poses, as when this was inline in _run_sfm
+    return next(iter(cams.values()))
+
+
+def _transforms(pycolmap, rec, camera, names: list[str], mode: str) -> tuple[list[str], list[str], dict]:
+    """(registered names, unregistered names, transforms.json content): OpenGL camera-to-world
+    poses of the posed frames in the images' order, with what SfM reported about the run."""
+    intr = _opencv_intrinsics(camera)
+    posed = {}
+    for image in rec.images.values():
+        if not image.has_pose:
+            continue
+        R, t = _cam_from_world(image)
+        posed[image.name] = w2c_cv_to_c2w_gl(R, t)
+    registered = [n for n in names if n in posed]
+    unregistered = [n for n in names if n not in posed]
+    frames = [{"file_path": f"images/{n}", "transform_matrix": [[float(v) for v in row] for row in posed[n]]}
+              for n in registered]
+    data = {**intr, "frames": frames,
+            "sfm": {"tool": f"pycolmap {pycolmap.__version__}", "matching": mode,
+                    "registered": len(registered), "unregistered": unregistered,
+                    "mean_reprojection_error": float(rec.compute_mean_reprojection_error()),
+                    "num_points": int(rec.num_points3D())}}
+    return registered, unregistered, data
+
+
+def _write_transforms(rec, data: dict, target: Path, out: Path | None) -> None:
+    """Write transforms.json atomically; outside the capture, the sparse points go beside it
+    as points3D.ply (named in the file) so the folder is complete on its own."""
+    target.parent.mkdir(parents=True, exist_ok=True)
+    if out is not None:
+        ply = target.parent / "points3D.ply"
+        rec.export_PLY(str(ply))
+        data["ply_file_path"] = os.path.relpath(ply, target.parent)
+    write_text_atomic(target, json.dumps(data, indent=2))

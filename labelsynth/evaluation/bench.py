@@ -22,7 +22,9 @@ from __future__ import annotations
 import json
 import time
 from collections.abc import Iterable, Sequence
+from dataclasses import dataclass, field
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -36,6 +38,13 @@ from ..recipe import load_recipe
 from .fusion import DEFAULT_CUTOFF_DEG, DEFAULT_STRIDE, fusion_baseline, load_mesh_unit
 from .metrics import WOUND_BED, Scores, score_frames
 from .perturb import PERTURBATIONS, apply_perturbation, half_frames
+
+if TYPE_CHECKING:
+    import torch
+    import trimesh
+
+    from ..recipe import Recipe
+    from ..render.field import SemanticField
 
 METHODS = ("2d", "3d2d", "field")
 METHOD_NAMES = {"2d": "2D", "3d2d": "3D/2D", "field": "Field"}
@@ -103,9 +112,43 @@ def _score_rows(method: str, labels: str, perturbation: str, scores: Scores) -> 
     return rows
 
 
-def _render_field(sem, capture: Capture, names: Sequence[str], progress: bool) -> dict[str, np.ndarray]:
+def _render_field(sem: SemanticField, capture: Capture, names: Sequence[str], progress: bool) -> dict[str, np.ndarray]:
     cams = dict(zip(capture.names, capture.unit_cameras()))
     return {n: sem.render(cams[n]).mask for n in track(list(names), "field render", enabled=progress)}
+
+
+@dataclass
+class _BenchInputs:
+    """What every row reads, loaded and checked once before any fit."""
+
+    capture: Capture
+    annotated: list[str]  # frames whose annotations teach: never scored
+    scored: list[str]
+    truth_list: list[np.ndarray]  # in ``scored`` order
+    preds: dict[str, np.ndarray]  # the capture's automatic predictions, by frame name
+    user_mesh: trimesh.Trimesh | None  # a user mesh for 3D/2D, in the unit cube
+
+
+@dataclass
+class _BenchRows:
+    """The rows scored so far and each method's time, with the scoring and logging they share."""
+
+    inputs: _BenchInputs
+    progress: bool
+    seconds: dict[str, float]
+    rows: list[dict] = field(default_factory=list)
+
+    def log(self, msg: str) -> None:
+        """One progress line, so a long bench shows each row as it lands."""
+        if self.progress:
+            console.print(f"[bold]bench[/] {msg}")
+
+    def add(self, method: str, labels: str, perturbation: str, masks: dict[str, np.ndarray], title: str) -> None:
+        """Score ``masks`` on the scored frames, keep the rows and log the wound-bed line."""
+        inp = self.inputs
+        s = score_frames([masks[n] for n in inp.scored], inp.truth_list, inp.capture.classes, inp.scored)
+        self.rows += _score_rows(method, labels, perturbation, s)
+        self.log(f"{title} / {perturbation}: {s.summary_line([WOUND_BED])}")
 
 
 def run_bench(
@@ -139,7 +182,55 @@ def run_bench(
     perts = normalise_perturbations(perturbations)
     rec = load_recipe(recipe, overrides)
     dev = pick_device(device)
+    needs_field = "field" in meths
+    needs_geometry = needs_field or ("3d2d" in meths and mesh is None)
+    inputs = _load_inputs(capture, truth_dir, meths, mesh, needs_field=needs_field, needs_geometry=needs_geometry)
+    bench = _BenchRows(inputs, progress, seconds={m: 0.0 for m in meths})
+    timing: dict[str, float] = {}
+    bench.log(f"{len(capture)} frames ({len(inputs.annotated)} annotated, {len(inputs.scored)} scored), "
+              f"methods={','.join(meths)}, perturbations={','.join(perts)}, recipe={rec.name}, device={dev}")
 
+    kept = half_frames(capture.names)
+    sem = sem_half = None
+    if needs_geometry:
+        sem, sem_half = _fit_geometries(capture, rec, dev, kept, refit_half="half-frames" in perts and half_geometry,
+                                        seed=seed, progress=progress, timing=timing)
+    for pert in perts:
+        _run_perturbation(bench, pert, meths, kept, sem_half if pert == "half-frames" else sem, rec,
+                          seed=seed, cutoff_deg=cutoff_deg, stride=stride)
+    annotations_note = None
+    if needs_field:
+        annotations_note = _run_annotation_field(bench, sem, rec, seed=seed)
+
+    timing["total"] = time.perf_counter() - t_start
+    result = {
+        "rows": bench.rows,
+        "seconds": bench.seconds,
+        "timing": timing,
+        "capture": str(Path(capture_dir).resolve()),
+        "truth": str(Path(truth_dir).resolve()),
+        "recipe": rec.name,
+        "device": str(dev),
+        "seed": seed,
+        "methods": meths,
+        "perturbations": perts,
+        "frames": len(capture),
+        "annotated_frames": inputs.annotated,
+        "scored_frames": len(inputs.scored),
+        "half_frames_kept": len(kept),
+        "half_frames_geometry": _half_geometry_note(inputs.user_mesh is not None, needs_field, half_geometry),
+        "fusion": {"cutoff_deg": cutoff_deg, "stride": stride, "mesh": str(mesh) if mesh else "fitted field"},
+        "notes": [annotations_note] if annotations_note else [],
+    }
+    _write_bench(result, Path(out_dir))
+    bench.log(f"wrote {Path(out_dir) / 'bench.json'}, bench.md, bench.png in {timing['total']:.0f} s")
+    return result
+
+
+def _load_inputs(capture: Capture, truth_dir: str | Path, meths: list[str], mesh: str | Path | None, *,
+                 needs_field: bool, needs_geometry: bool) -> _BenchInputs:
+    """Split the frames into teaching and scored ones and read every file the bench needs,
+    so that a missing or bad file stops the run before any fit rather than after an hour."""
     annotated = [f.name for f in capture.frames if f.annotation_path is not None]
     scored = [n for n in capture.names if n not in set(annotated)]
     if not scored:
@@ -153,8 +244,6 @@ def run_bench(
                 f"{capture.root / 'predictions' / (lacking[0].name + '.png')}: missing; the 2D baseline needs a "
                 "prediction for every scored frame"
             )
-    needs_field = "field" in meths
-    needs_geometry = needs_field or ("3d2d" in meths and mesh is None)
     if not Path(truth_dir).is_dir():
         raise LabelsynthError(f"{truth_dir}: truth folder not found")
     # Every file the bench reads, checked before any fit: images only when a geometry is fitted,
@@ -163,110 +252,80 @@ def run_bench(
     check_capture(capture, labels="both" if needs_field else "predictions", images=needs_geometry,
                   extra_masks=truth_masks).raise_if_problems()
     truths = load_truths(truth_dir, capture, scored)
-    truth_list = [truths[n] for n in scored]
     preds = {f.name: capture.load_prediction(i) for i, f in enumerate(capture.frames) if f.prediction_path is not None}
     user_mesh = load_mesh_unit(mesh, capture.normalization) if mesh is not None else None
+    return _BenchInputs(capture, annotated, scored, [truths[n] for n in scored], preds, user_mesh)
 
-    def log(msg: str) -> None:
-        if progress:
-            console.print(f"[bold]bench[/] {msg}")
 
-    def score(masks: dict[str, np.ndarray]) -> Scores:
-        return score_frames([masks[n] for n in scored], truth_list, capture.classes, scored)
-
-    rows: list[dict] = []
-    seconds = {m: 0.0 for m in meths}
-    timing: dict[str, float] = {}
-    log(f"{len(capture)} frames ({len(annotated)} annotated, {len(scored)} scored), methods={','.join(meths)}, "
-        f"perturbations={','.join(perts)}, recipe={rec.name}, device={dev}")
-
-    kept = half_frames(capture.names)
-    sem = sem_half = None
-    if needs_geometry:
+def _fit_geometries(capture: Capture, rec: Recipe, dev: torch.device, kept: list[str], *, refit_half: bool,
+                    seed: int, progress: bool, timing: dict[str, float]) -> tuple[SemanticField, SemanticField]:
+    """The geometry on all frames, and on the kept half when the half-frames row refits it
+    (the paper halved the training images); every row then refits only the cheap semantics."""
+    t0 = time.perf_counter()
+    sem, _ = fit_geometry(capture, rec, dev, seed=seed, progress=progress)
+    timing["geometry"] = time.perf_counter() - t0
+    sem_half = sem
+    if refit_half:
         t0 = time.perf_counter()
-        sem, _ = fit_geometry(capture, rec, dev, seed=seed, progress=progress)
-        timing["geometry"] = time.perf_counter() - t0
-        sem_half = sem
-        if "half-frames" in perts and half_geometry:
-            t0 = time.perf_counter()
-            index = {n: i for i, n in enumerate(capture.names)}
-            sem_half, _ = fit_geometry(capture, rec, dev, frames=[index[n] for n in kept], seed=seed, progress=progress)
-            timing["geometry_half_frames"] = time.perf_counter() - t0
+        index = {n: i for i, n in enumerate(capture.names)}
+        sem_half, _ = fit_geometry(capture, rec, dev, frames=[index[n] for n in kept], seed=seed, progress=progress)
+        timing["geometry_half_frames"] = time.perf_counter() - t0
+    return sem, sem_half
 
-    for pert in perts:
+
+def _run_perturbation(bench: _BenchRows, pert: str, meths: list[str], kept: list[str],
+                      geometry: SemanticField | None, rec: Recipe, *, seed: int, cutoff_deg: float,
+                      stride: int) -> None:
+    """One perturbation's rows: perturb the predictions once, then score each method on them
+    (2D scores them as they are, 3D/2D votes them onto a mesh, the field learns from them)."""
+    inp = bench.inputs
+    t0 = time.perf_counter()
+    if pert == "half-frames":
+        keep = set(kept)
+        masks = {n: np.array(m, copy=True) for n, m in inp.preds.items() if n in keep}
+    else:
+        masks = apply_perturbation(pert, inp.preds, seed=seed)
+    t_perturb = time.perf_counter() - t0
+
+    if "2d" in meths and pert != "half-frames":
+        bench.seconds["2d"] += t_perturb
+        bench.add("2d", "predictions", pert, masks, "2D")
+    if "3d2d" in meths:
         t0 = time.perf_counter()
-        if pert == "half-frames":
-            keep = set(kept)
-            masks = {n: np.array(m, copy=True) for n, m in preds.items() if n in keep}
-        else:
-            masks = apply_perturbation(pert, preds, seed=seed)
-        t_perturb = time.perf_counter() - t0
-        geometry = sem_half if pert == "half-frames" else sem
+        source = inp.user_mesh if inp.user_mesh is not None else geometry
+        out = fusion_baseline(source, inp.capture, masks, frames=inp.scored, cutoff_deg=cutoff_deg, stride=stride,
+                              progress=bench.progress)
+        bench.seconds["3d2d"] += time.perf_counter() - t0
+        bench.add("3d2d", "predictions", pert, out, "3D/2D")
+    if "field" in meths:
+        t0 = time.perf_counter()
+        frames = labelled_frames(inp.capture, "predictions", rec, predictions=masks)
+        fit_semantics(geometry, frames, seed=seed, progress=bench.progress)
+        out = _render_field(geometry, inp.capture, inp.scored, bench.progress)
+        bench.seconds["field"] += time.perf_counter() - t0
+        bench.add("field", "predictions", pert, out, "field")
 
-        if "2d" in meths and pert != "half-frames":
-            s = score(masks)
-            seconds["2d"] += t_perturb
-            rows += _score_rows("2d", "predictions", pert, s)
-            log(f"2D / {pert}: {s.summary_line([WOUND_BED])}")
-        if "3d2d" in meths:
-            t0 = time.perf_counter()
-            source = user_mesh if user_mesh is not None else geometry
-            out = fusion_baseline(source, capture, masks, frames=scored, cutoff_deg=cutoff_deg, stride=stride,
-                                  progress=progress)
-            seconds["3d2d"] += time.perf_counter() - t0
-            s = score(out)
-            rows += _score_rows("3d2d", "predictions", pert, s)
-            log(f"3D/2D / {pert}: {s.summary_line([WOUND_BED])}")
-        if needs_field:
-            t0 = time.perf_counter()
-            frames = labelled_frames(capture, "predictions", rec, predictions=masks)
-            fit_semantics(geometry, frames, seed=seed, progress=progress)
-            out = _render_field(geometry, capture, scored, progress)
-            seconds["field"] += time.perf_counter() - t0
-            s = score(out)
-            rows += _score_rows("field", "predictions", pert, s)
-            log(f"field / {pert}: {s.summary_line([WOUND_BED])}")
 
-    annotations_note = None
-    if needs_field:
-        if capture.has_annotations:
-            t0 = time.perf_counter()
-            fit_semantics(sem, labelled_frames(capture, "annotations", rec), seed=seed, progress=progress)
-            out = _render_field(sem, capture, scored, progress)
-            seconds["field"] += time.perf_counter() - t0
-            s = score(out)
-            rows += _score_rows("field", "annotations", "none", s)
-            log(f"field (annotations) / none: {s.summary_line([WOUND_BED])}")
-        else:
-            annotations_note = "the capture has no annotations/, so there is no annotation-trained field row"
+def _run_annotation_field(bench: _BenchRows, sem: SemanticField, rec: Recipe, *, seed: int) -> str | None:
+    """The field taught by the expert annotations alone (the paper's upper reference), or the
+    note saying why that row is missing."""
+    capture = bench.inputs.capture
+    if not capture.has_annotations:
+        return "the capture has no annotations/, so there is no annotation-trained field row"
+    t0 = time.perf_counter()
+    fit_semantics(sem, labelled_frames(capture, "annotations", rec), seed=seed, progress=bench.progress)
+    out = _render_field(sem, capture, bench.inputs.scored, bench.progress)
+    bench.seconds["field"] += time.perf_counter() - t0
+    bench.add("field", "annotations", "none", out, "field (annotations)")
+    return None
 
-    timing["total"] = time.perf_counter() - t_start
-    result = {
-        "rows": rows,
-        "seconds": seconds,
-        "timing": timing,
-        "capture": str(Path(capture_dir).resolve()),
-        "truth": str(Path(truth_dir).resolve()),
-        "recipe": rec.name,
-        "device": str(dev),
-        "seed": seed,
-        "methods": meths,
-        "perturbations": perts,
-        "frames": len(capture),
-        "annotated_frames": annotated,
-        "scored_frames": len(scored),
-        "half_frames_kept": len(kept),
-        "half_frames_geometry": _half_geometry_note(user_mesh is not None, needs_field, half_geometry),
-        "fusion": {"cutoff_deg": cutoff_deg, "stride": stride, "mesh": str(mesh) if mesh else "fitted field"},
-        "notes": [annotations_note] if annotations_note else [],
-    }
-    out_dir = Path(out_dir)
+
+def _write_bench(result: dict, out_dir: Path) -> None:
+    """bench.json (the numbers), bench.md (the paper's tables) and bench.png (the bars)."""
     out_dir.mkdir(parents=True, exist_ok=True)
     (out_dir / "bench.json").write_text(json.dumps(result, indent=2))
     (out_dir / "bench.md").write_text(bench_markdown(result))
     bench_plot(result, out_dir / "bench.png")
-    log(f"wrote {out_dir / 'bench.json'}, bench.md, bench.png in {timing['total']:.0f} s")
-    return result
 
 
 def _half_geometry_note(user_mesh: bool, field: bool, refit: bool) -> str:
@@ -334,8 +393,13 @@ def _table1_classes(result: dict) -> list[str]:
 
 def bench_markdown(result: dict) -> str:
     """Tables shaped like the paper's Table 1 (accuracy) and Table 2 (robustness)."""
-    rows = result["rows"]
     series = _series(result)
+    lines = _intro_lines(result) + _table1_lines(result, series) + _table2_lines(result, series) + _time_lines(result)
+    return "\n".join(lines) + "\n"
+
+
+def _intro_lines(result: dict) -> list[str]:
+    """What was scored against what, and what each method is, so the tables read on their own."""
     lines = [
         "# labelsynth benchmark",
         "",
@@ -371,35 +435,41 @@ def bench_markdown(result: dict) -> str:
         ]
     for note in result.get("notes", []):
         lines += [f"Note: {note}.", ""]
+    return lines
 
-    # Table 1
+
+def _table1_lines(result: dict, series: list[tuple[str, str]]) -> list[str]:
+    """The paper's Table 1: every method's unperturbed Dice and recall per reported class."""
+    rows = result["rows"]
     classes = _table1_classes(result)
     t1 = [(m, lab) for m, lab in series if _find(rows, m, lab, "none", WOUND_BED)]
-    lines += ["## Table 1: accuracy (no perturbation)", ""]
-    if t1:
-        header = "| Method | " + " | ".join(f"{c.replace('_', ' ').title()} DSC | Recall" for c in classes) + " |"
-        lines += [header, "|---|" + "---:|---:|" * len(classes)]
-        values = []
-        for m, lab in t1:
-            v = []
-            for c in classes:
-                r = _find(rows, m, lab, "none", c)
-                v += [r["dice"] if r else None, r["recall"] if r else None]
-            values.append(v)
-        for (m, lab), cells in zip(t1, _bold_table(values)):
-            lines.append(f"| {_label(m, lab)} | " + " | ".join(cells) + " |")
-        pops = []
+    lines = ["## Table 1: accuracy (no perturbation)", ""]
+    if not t1:
+        return lines + ["(no unperturbed rows were run)", ""]
+    header = "| Method | " + " | ".join(f"{c.replace('_', ' ').title()} DSC | Recall" for c in classes) + " |"
+    lines += [header, "|---|" + "---:|---:|" * len(classes)]
+    values = []
+    for m, lab in t1:
+        v = []
         for c in classes:
-            r = next((r for r in rows if r["class"] == c and r["perturbation"] == "none"), None)
-            pops.append(f"{c.replace('_', ' ')} n={r['n'] if r else 0}")
-        lines += ["", "Population sizes: " + ", ".join(pops) + ".", ""]
-    else:
-        lines += ["(no unperturbed rows were run)", ""]
+            r = _find(rows, m, lab, "none", c)
+            v += [r["dice"] if r else None, r["recall"] if r else None]
+        values.append(v)
+    for (m, lab), cells in zip(t1, _bold_table(values)):
+        lines.append(f"| {_label(m, lab)} | " + " | ".join(cells) + " |")
+    pops = []
+    for c in classes:
+        r = next((r for r in rows if r["class"] == c and r["perturbation"] == "none"), None)
+        pops.append(f"{c.replace('_', ' ')} n={r['n'] if r else 0}")
+    return lines + ["", "Population sizes: " + ", ".join(pops) + ".", ""]
 
-    # Table 2
-    lines += ["## Table 2: robustness (wound bed)", "",
-              "Best per column within each perturbation in bold.", "",
-              "| Method | Perturbation | DSC | Recall |", "|---|---|---:|---:|"]
+
+def _table2_lines(result: dict, series: list[tuple[str, str]]) -> list[str]:
+    """The paper's Table 2: wound-bed Dice and recall of every method under each perturbation."""
+    rows = result["rows"]
+    lines = ["## Table 2: robustness (wound bed)", "",
+             "Best per column within each perturbation in bold.", "",
+             "| Method | Perturbation | DSC | Recall |", "|---|---|---:|---:|"]
     for pert in result["perturbations"]:
         block = [(m, lab) for m, lab in series if _find(rows, m, lab, pert, WOUND_BED)]
         if not block:
@@ -408,12 +478,17 @@ def bench_markdown(result: dict) -> str:
                   for m, lab in block]
         for (m, lab), cells in zip(block, _bold_table(values)):
             lines.append(f"| {_label(m, lab)} | {PERTURBATION_NAMES[pert]} | {cells[0]} | {cells[1]} |")
-    lines += ["", "## Time", "", "| | seconds |", "|---|---:|"]
+    return lines
+
+
+def _time_lines(result: dict) -> list[str]:
+    """Each method's time and the geometry fits, since cost is part of the comparison."""
+    lines = ["", "## Time", "", "| | seconds |", "|---|---:|"]
     for m, s in result["seconds"].items():
         lines.append(f"| {METHOD_NAMES[m]} (all rows, geometry excluded) | {s:.1f} |")
     for k, s in result.get("timing", {}).items():
         lines.append(f"| {k.replace('_', ' ')} | {s:.1f} |")
-    return "\n".join(lines) + "\n"
+    return lines
 
 
 def bench_plot(result: dict, path: str | Path) -> None:

@@ -146,19 +146,33 @@ class OnnxSegmenter:
         self.model_path = Path(model_path)
         if not self.model_path.is_file():
             raise SegmentError(f"{self.model_path}: model file not found")
-        providers = _select_providers(device)
-        options = ort.SessionOptions()
-        options.log_severity_level = 3  # keep onnxruntime's warnings off the user's terminal
-        try:
-            self.session = ort.InferenceSession(str(self.model_path), sess_options=options, providers=providers)
-        except Exception as exc:  # onnxruntime raises its own classes, not RuntimeError
-            reason = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
-            raise SegmentError(f"{self.model_path}: not a usable ONNX model ({reason})") from exc
+        self.session = self._open_session(ort, device)
         self.providers = self.session.get_providers()
         if device == "cuda" and "CUDAExecutionProvider" not in self.providers:
             raise SegmentError(f"{self.model_path}: --device cuda, but onnxruntime could not start CUDA for this model")
         self.provider = self.providers[0]
+        self._read_input(input_size)
+        self._read_output()
+        self.id_map = parse_id_map(id_map) or {}
+        self._mean = np.asarray(mean, dtype=np.float32).reshape(1, 1, 3) * 255.0
+        self._inv_std = 1.0 / (np.asarray(std, dtype=np.float32).reshape(1, 1, 3) * 255.0)
+        self._lut: np.ndarray | None = None
+        self.num_model_classes: int | None = None
 
+    def _open_session(self, ort, device: str):
+        """An onnxruntime session on the chosen providers; a file it cannot load is a one-line error."""
+        providers = _select_providers(device)
+        options = ort.SessionOptions()
+        options.log_severity_level = 3  # keep onnxruntime's warnings off the user's terminal
+        try:
+            return ort.InferenceSession(str(self.model_path), sess_options=options, providers=providers)
+        except Exception as exc:  # onnxruntime raises its own classes, not RuntimeError
+            reason = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
+            raise SegmentError(f"{self.model_path}: not a usable ONNX model ({reason})") from exc
+
+    def _read_input(self, input_size: tuple[int, int] | str | None) -> None:
+        """Sets the input's name, batch, size and dtype, checking it takes (N, 3, H, W) images;
+        a model with a fixed size refuses any other ``--input-size`` rather than fail mid-run."""
         inputs = self.session.get_inputs()
         self._input = next((i for i in inputs if i.name == "pixel_values"), inputs[0])
         self.input_name = self._input.name
@@ -182,17 +196,14 @@ class OnnxSegmenter:
             self.input_size = requested or DEFAULT_INPUT_SIZE
         self._input_dtype = np.float16 if self._input.type == "tensor(float16)" else np.float32
 
+    def _read_output(self) -> None:
+        """Sets the output's name, checking (when the model states it) that it gives logits (N, C, h, w)."""
         output = self.session.get_outputs()[0]
         self.output_name = output.name
         if output.shape and len(output.shape) != 4:  # an empty shape means "unknown": checked at run time
             raise SegmentError(
                 f"{self.model_path}: output {output.name!r} has shape {list(output.shape)}, expected logits (N, C, h, w)"
             )
-        self.id_map = parse_id_map(id_map) or {}
-        self._mean = np.asarray(mean, dtype=np.float32).reshape(1, 1, 3) * 255.0
-        self._inv_std = 1.0 / (np.asarray(std, dtype=np.float32).reshape(1, 1, 3) * 255.0)
-        self._lut: np.ndarray | None = None
-        self.num_model_classes: int | None = None
 
     # --- pieces ---------------------------------------------------------------------------
     def preprocess(self, image_rgb: np.ndarray) -> np.ndarray:
@@ -350,17 +361,10 @@ def segment_capture(
     if existing and not overwrite:
         raise SegmentError(f"{out_dir}: already holds {existing} of these masks; pass --force to replace them")
 
-    counts = np.zeros(256, dtype=np.int64)
     start = time.perf_counter()
-    with building(out_dir, merge=True) as partial, make_progress(progress) as bar:
-        task = bar.add_task("segment", total=len(images), status="")
-        for first in range(0, len(images), batch_size):
-            paths = images[first : first + batch_size]
-            frames = [read_image(p, white_background=white_background) for p in paths]
-            for path, mask in zip(paths, segmenter.predict_batch(frames)):
-                write_mask(partial / f"{path.stem}.png", mask)
-                counts += np.bincount(mask.ravel(), minlength=256)
-            bar.update(task, advance=len(paths), status=paths[-1].name)
+    with building(out_dir, merge=True) as partial:
+        counts = _segment_frames(segmenter, images, partial, batch_size=batch_size,
+                                 white_background=white_background, progress=progress)
     seconds = time.perf_counter() - start
 
     known = set(int(i) for i in classes.ids) | {IGNORE_ID}
@@ -378,3 +382,20 @@ def segment_capture(
         unknown_ids=[i for i in predicted if i not in known],
         replaced=existing,
     )
+
+
+def _segment_frames(segmenter: OnnxSegmenter, images: list[Path], folder: Path, *, batch_size: int,
+                    white_background: bool, progress: bool) -> np.ndarray:
+    """Segment the frames batch by batch into ``folder``; returns the pixel count per class id
+    (256 bins), which the report uses to flag ids missing from the capture's class table."""
+    counts = np.zeros(256, dtype=np.int64)
+    with make_progress(progress) as bar:
+        task = bar.add_task("segment", total=len(images), status="")
+        for first in range(0, len(images), batch_size):
+            paths = images[first : first + batch_size]
+            frames = [read_image(p, white_background=white_background) for p in paths]
+            for path, mask in zip(paths, segmenter.predict_batch(frames)):
+                write_mask(folder / f"{path.stem}.png", mask)
+                counts += np.bincount(mask.ravel(), minlength=256)
+            bar.update(task, advance=len(paths), status=paths[-1].name)
+    return counts

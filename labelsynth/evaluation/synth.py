@@ -20,7 +20,7 @@ import json
 import time
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
-from typing import Literal
+from typing import Literal, NamedTuple
 
 import cv2
 import numpy as np
@@ -203,9 +203,64 @@ def _vignette(width: int, height: int) -> np.ndarray:
     return 1.0 - 0.18 * r2
 
 
+def _skin_marks(rng: np.random.Generator, shape: tuple[int, int], extent: tuple[float, float], fine: bool) -> np.ndarray:
+    """How much each texel is darkened (0..1): freckles, moles, hairs and (``fine``) pores, the
+    small high-contrast features that give feature matching and the field something to hold."""
+    h, w = shape
+    ext_v, ext_u = extent
+    texel = ext_u / w
+    canvas = np.zeros(shape, np.uint8)  # darkening amount (x255), drawn anti-aliased
+    # freckles and marks (a count proportional to the area, sizes at several scales)
+    area = ext_u * ext_v
+    n_freckles = int(area * (260 if fine else 120))
+    for _ in range(n_freckles):
+        x, y = rng.uniform(0, w), rng.uniform(0, h)
+        r = rng.choice([0.0025, 0.004, 0.007, 0.012], p=[0.4, 0.3, 0.2, 0.1]) * rng.uniform(0.7, 1.3)
+        cv2.ellipse(canvas, (int(x * 16), int(y * 16)), (max(1, int(r / texel * 16)), max(1, int(r / texel * 16 * rng.uniform(0.6, 1.0)))),
+                    float(rng.uniform(0, 180)), 0, 360, int(255 * rng.uniform(0.2, 0.6)), -1, cv2.LINE_AA, 4)
+    for _ in range(max(1, int(area * 3))):  # a few moles
+        x, y = rng.uniform(0, w), rng.uniform(0, h)
+        r = rng.uniform(0.008, 0.02) / texel
+        cv2.circle(canvas, (int(x * 16), int(y * 16)), max(1, int(r * 16)), int(255 * rng.uniform(0.6, 0.85)), -1, cv2.LINE_AA, 4)
+    # hair-like strokes, roughly along u
+    hair = np.zeros(shape, np.uint8)
+    for _ in range(int(area * (900 if fine else 300))):
+        x, y = rng.uniform(0, w), rng.uniform(0, h)
+        length = rng.uniform(0.01, 0.035) / texel
+        ang = rng.normal(0.0, 0.35)
+        x2, y2 = x + length * np.cos(ang), y + length * np.sin(ang)
+        cv2.line(hair, (int(x * 16), int(y * 16)), (int(x2 * 16), int(y2 * 16)), int(255 * rng.uniform(0.25, 0.55)),
+                 max(1, int(round(0.0012 / texel))), cv2.LINE_AA, 4)
+    canvas = np.maximum(canvas, hair).astype(np.float32) / 255.0
+    if fine:  # pores: thresholded fine noise
+        pores = _noise(rng, shape, (ext_v / 0.006, ext_u / 0.006))
+        canvas = np.maximum(canvas, 0.3 * _smoothstep(1.6, 2.6, pores))
+    return cv2.GaussianBlur(canvas, (0, 0), 0.6)
+
+
 # ------------------------------------------------------------------------------------------
 # the scene: surface, wound layout, textures
 # ------------------------------------------------------------------------------------------
+class _SurfaceHits(NamedTuple):
+    """Surface attributes at the rays' hits (one row per hit)."""
+
+    pos: np.ndarray  # world point
+    uv: np.ndarray  # surface coordinates
+    normal: np.ndarray  # mesh normal (before bump mapping)
+    tu: np.ndarray  # unit tangent along u
+    tv: np.ndarray  # unit tangent along v
+
+
+class _Material(NamedTuple):
+    """What the textures give at each hit."""
+
+    labels: np.ndarray  # class id
+    albedo: np.ndarray  # RGB 0..255
+    spec: np.ndarray  # specular strength
+    shin: np.ndarray  # shininess
+    bump_grad: np.ndarray  # bump-map slope (d/du, d/dv)
+
+
 class _Scene:
     """Body surface as a displaced parametric grid, with textures over (u, v).
 
@@ -440,40 +495,13 @@ class _Scene:
         """Skin albedo (H,W,3 float32 in 0..255) with features at physical scales (world units)."""
         h, w = shape
         ext_v, ext_u = extent
-        texel = ext_u / w
         img = np.broadcast_to(tone, (h, w, 3)).astype(np.float32).copy()
         # blotchiness and redness at a few scales
         blotch = _fbm(rng, shape, ext_u / 0.25, octaves=3, aspect=ext_v / ext_u)
         red = _fbm(rng, shape, ext_u / 0.12, octaves=2, aspect=ext_v / ext_u)
         img *= (1.0 + 0.07 * blotch)[..., None]
         img += np.array([9, -3, -3], np.float32) * np.clip(red, 0, None)[..., None]
-        canvas = np.zeros(shape, np.uint8)  # darkening amount (x255), drawn anti-aliased
-        # freckles and marks (a count proportional to the area, sizes at several scales)
-        area = ext_u * ext_v
-        n_freckles = int(area * (260 if fine else 120))
-        for _ in range(n_freckles):
-            x, y = rng.uniform(0, w), rng.uniform(0, h)
-            r = rng.choice([0.0025, 0.004, 0.007, 0.012], p=[0.4, 0.3, 0.2, 0.1]) * rng.uniform(0.7, 1.3)
-            cv2.ellipse(canvas, (int(x * 16), int(y * 16)), (max(1, int(r / texel * 16)), max(1, int(r / texel * 16 * rng.uniform(0.6, 1.0)))),
-                        float(rng.uniform(0, 180)), 0, 360, int(255 * rng.uniform(0.2, 0.6)), -1, cv2.LINE_AA, 4)
-        for _ in range(max(1, int(area * 3))):  # a few moles
-            x, y = rng.uniform(0, w), rng.uniform(0, h)
-            r = rng.uniform(0.008, 0.02) / texel
-            cv2.circle(canvas, (int(x * 16), int(y * 16)), max(1, int(r * 16)), int(255 * rng.uniform(0.6, 0.85)), -1, cv2.LINE_AA, 4)
-        # hair-like strokes, roughly along u
-        hair = np.zeros(shape, np.uint8)
-        for _ in range(int(area * (900 if fine else 300))):
-            x, y = rng.uniform(0, w), rng.uniform(0, h)
-            length = rng.uniform(0.01, 0.035) / texel
-            ang = rng.normal(0.0, 0.35)
-            x2, y2 = x + length * np.cos(ang), y + length * np.sin(ang)
-            cv2.line(hair, (int(x * 16), int(y * 16)), (int(x2 * 16), int(y2 * 16)), int(255 * rng.uniform(0.25, 0.55)),
-                     max(1, int(round(0.0012 / texel))), cv2.LINE_AA, 4)
-        canvas = np.maximum(canvas, hair).astype(np.float32) / 255.0
-        if fine:  # pores: thresholded fine noise
-            pores = _noise(rng, shape, (ext_v / 0.006, ext_u / 0.006))
-            canvas = np.maximum(canvas, 0.3 * _smoothstep(1.6, 2.6, pores))
-        canvas = cv2.GaussianBlur(canvas, (0, 0), 0.6)
+        canvas = _skin_marks(rng, shape, extent, fine)
         brown = np.array([0.55, 0.38, 0.30], np.float32)
         img = img * (1 - canvas[..., None] * (1 - brown))
         return np.clip(img, 0, 255)
@@ -515,16 +543,27 @@ class _Scene:
         return gx, gy
 
     def _textures(self, rng: np.random.Generator) -> None:
-        R = self.wound_radius
+        """Albedo, gloss and relief over the texture window, all drawn from the class labels."""
         tone = self._skin_tone(rng)
         self.skin_tone = tone
         skin = self._window_skin(rng, tone)
-
-        lab = self.labels
         bumps = self._win_fbm(rng, 12, octaves=2)  # granulation cobbles ~ R/12
         fine = self._win_noise(rng, 30)
         mott = self._win_fbm(rng, 3, octaves=3)
         fib = self._win_fbm(rng, 6, octaves=2, aspect=4.0)
+        self.albedo = self._tissue_albedo(skin, bumps, fine, mott, fib)
+        # specular strength and shininess per class (wet wound bed, dry skin)
+        spec = np.array([0.05, 0.45, 0.28, 0.15, 0.3, 0.25], np.float32)
+        shin = np.array([12, 45, 30, 20, 40, 30], np.float32)
+        self.spec = spec[self.labels]
+        self.shin = shin[self.labels]
+        self._relief(rng, bumps, fine)
+
+    def _tissue_albedo(self, skin: np.ndarray, bumps: np.ndarray, fine: np.ndarray, mott: np.ndarray,
+                       fib: np.ndarray) -> np.ndarray:
+        """Each tissue's colour with its own texture over the skin, and an inflamed halo around
+        the wound, so a segmenter sees the cues it would on a real wound."""
+        lab = self.labels
         alb = skin.copy()
         m = lab == GRANULATION
         gran = np.array([186, 44, 46], np.float32)
@@ -541,15 +580,12 @@ class _Scene:
         # a reddish inflamed halo on the skin around the wound
         halo = _smoothstep(1.6, 1.0, self.rho) * (lab == BACKGROUND)
         alb = alb * (1 - 0.25 * halo[..., None]) + 0.25 * halo[..., None] * np.array([205, 110, 100], np.float32)
-        self.albedo = np.clip(alb, 0, 255).astype(np.float32)
+        return np.clip(alb, 0, 255).astype(np.float32)
 
-        # specular strength and shininess per class (wet wound bed, dry skin)
-        spec = np.array([0.05, 0.45, 0.28, 0.15, 0.3, 0.25], np.float32)
-        shin = np.array([12, 45, 30, 20, 40, 30], np.float32)
-        self.spec = spec[lab]
-        self.shin = shin[lab]
-
-        # relief: a crater (in the mesh) and fine bumps (normal map only)
+    def _relief(self, rng: np.random.Generator, bumps: np.ndarray, fine: np.ndarray) -> None:
+        """Sets the relief: a crater the mesh carries (``height_geo``, so depth and silhouettes see
+        it) and fine bumps only the shading sees (``bump_grad``), too small for the mesh."""
+        R, lab = self.wound_radius, self.labels
         d = self.crater_depth
         crater = -d * (1 - _smoothstep(0.82, 1.08, self.rho))
         bed = (lab != BACKGROUND).astype(np.float32)
@@ -608,44 +644,73 @@ class _Scene:
         origins, dirs = self._rays(cam)
         prim, bary = self.intersect(origins, dirs)
         hit = prim >= 0
-        f = self.faces[prim[hit]]
-        w = bary[hit].astype(np.float32)
-        a = self._attrs
-        attrs = a[f[:, 0]] * w[:, :1] + a[f[:, 1]] * w[:, 1:2] + a[f[:, 2]] * w[:, 2:3]
-        pos, uv, nrm, tu, tv = attrs[:, 0:3], attrs[:, 3:5], attrs[:, 5:8], attrs[:, 8:11], attrs[:, 11:14]
+        surf = self._surface_at(prim[hit], bary[hit])
         d = dirs[hit].astype(np.float32)
         depth = np.full(W * H, np.inf, np.float32)
-        depth[hit] = np.einsum("ij,ij->i", pos - origins[hit].astype(np.float32), d)
+        depth[hit] = np.einsum("ij,ij->i", surf.pos - origins[hit].astype(np.float32), d)
+        mat = self._material(surf.uv)
+        nrm = self._bumped_normal(surf, mat.bump_grad, d)
+        col = self._shade(mat, nrm, -d, lights)
 
+        img = background_image(W, H).reshape(-1, 3).astype(np.float32)
+        vig = _vignette(W, H).reshape(-1)
+        img[hit] = col * vig[hit, None]
+        rgb = np.clip(np.round(img), 0, 255).astype(np.uint8).reshape(H, W, 3)
+        truth = np.zeros(W * H, np.uint8)
+        truth[hit] = mat.labels
+        return rgb, truth.reshape(H, W), depth.reshape(H, W)
+
+    def _surface_at(self, faces: np.ndarray, bary: np.ndarray) -> _SurfaceHits:
+        """The mesh's vertex attributes blended at the hits, so colour and truth share one (u, v)."""
+        f = self.faces[faces]
+        w = bary.astype(np.float32)
+        a = self._attrs
+        attrs = a[f[:, 0]] * w[:, :1] + a[f[:, 1]] * w[:, 1:2] + a[f[:, 2]] * w[:, 2:3]
+        return _SurfaceHits(pos=attrs[:, 0:3], uv=attrs[:, 3:5], normal=attrs[:, 5:8], tu=attrs[:, 8:11],
+                            tv=attrs[:, 11:14])
+
+    def _material(self, uv: np.ndarray) -> _Material:
+        """Class, albedo, gloss and bump slope at each hit: the window textures inside the window
+        (labels nearest-texel, so truth stays crisp), the global skin texture outside it."""
         x, y = self._tex_coords(uv[:, 0], uv[:, 1])
         rows, cols = self.tex_shape
         tex = self._tex
+        n = len(uv)
         inwin = (x >= -0.5) & (y >= -0.5) & (x < cols - 0.5) & (y < rows - 0.5)
-        labels_hit = np.zeros(len(pos), np.uint8)
+        labels = np.zeros(n, np.uint8)
         xi = np.clip(np.floor(x[inwin] + 0.5).astype(np.int64), 0, cols - 1)
         yi = np.clip(np.floor(y[inwin] + 0.5).astype(np.int64), 0, rows - 1)
-        labels_hit[inwin] = tex["labels"][yi, xi]
+        labels[inwin] = tex["labels"][yi, xi]
 
-        alb = np.empty((len(pos), 3), np.float32)
-        alb[inwin] = _remap(tex["albedo"], x[inwin], y[inwin])
+        albedo = np.empty((n, 3), np.float32)
+        albedo[inwin] = _remap(tex["albedo"], x[inwin], y[inwin])
         out = ~inwin
-        alb[out] = _remap(tex["global_albedo"], *self._global_xy(uv[out, 0], uv[out, 1]))
-        spec = np.full(len(pos), 0.05, np.float32)
-        shin = np.full(len(pos), 12.0, np.float32)
+        albedo[out] = _remap(tex["global_albedo"], *self._global_xy(uv[out, 0], uv[out, 1]))
+        spec = np.full(n, 0.05, np.float32)
+        shin = np.full(n, 12.0, np.float32)
         spec[inwin] = tex["spec"][yi, xi]
         shin[inwin] = tex["shin"][yi, xi]
-        # bump-mapped normal
-        g = np.zeros((len(pos), 2), np.float32)
-        g[inwin] = _remap(tex["bump_grad"], x[inwin], y[inwin])
-        nrm = nrm - g[:, :1] * tu - g[:, 1:2] * tv
+        bump_grad = np.zeros((n, 2), np.float32)
+        bump_grad[inwin] = _remap(tex["bump_grad"], x[inwin], y[inwin])
+        return _Material(labels=labels, albedo=albedo, spec=spec, shin=shin, bump_grad=bump_grad)
+
+    @staticmethod
+    def _bumped_normal(surf: _SurfaceHits, bump_grad: np.ndarray, d: np.ndarray) -> np.ndarray:
+        """The mesh normal tilted by the bump map (fine relief the mesh is too coarse to hold),
+        turned to face the viewer (rays may graze the far side of a bump)."""
+        nrm = surf.normal - bump_grad[:, :1] * surf.tu - bump_grad[:, 1:2] * surf.tv
         nrm /= np.sqrt(np.einsum("ij,ij->i", nrm, nrm))[:, None]
-        # face the viewer (rays may graze the far side of a bump)
         flip = np.einsum("ij,ij->i", nrm, d) > 0
         nrm[flip] *= -1
+        return nrm
 
-        view = -d
-        shade = np.full(len(pos), lights["ambient"], np.float32)
-        spec_acc = np.zeros(len(pos), np.float32)
+    @staticmethod
+    def _shade(mat: _Material, nrm: np.ndarray, view: np.ndarray, lights: dict) -> np.ndarray:
+        """Blinn-Phong colour (0..255 float) under the scene's lights plus a weak phone light at the
+        camera, so the wet wound bed glints as in a real capture."""
+        shin = mat.shin
+        shade = np.full(len(nrm), lights["ambient"], np.float32)
+        spec_acc = np.zeros(len(nrm), np.float32)
         for ldir, power in lights["directional"]:
             ldir = ldir.astype(np.float32)
             ndl = np.clip(nrm @ ldir, 0, None)
@@ -653,19 +718,11 @@ class _Scene:
             hvec = view + ldir
             hvec /= np.sqrt(np.einsum("ij,ij->i", hvec, hvec))[:, None]
             spec_acc += power * (ndl > 0) * np.clip(np.einsum("ij,ij->i", nrm, hvec), 0, None) ** shin
-        # a weak phone light at the camera
         ndv = np.clip(np.einsum("ij,ij->i", nrm, view), 0, None)
         shade += lights["headlight"] * ndv
         spec_acc += lights["headlight"] * ndv**shin
-        col = alb * shade[:, None] + 255.0 * (spec * spec_acc)[:, None] * np.array([1.0, 0.97, 0.93], np.float32)
-
-        img = background_image(W, H).reshape(-1, 3).astype(np.float32)
-        vig = _vignette(W, H).reshape(-1)
-        img[hit] = col * vig[hit, None]
-        rgb = np.clip(np.round(img), 0, 255).astype(np.uint8).reshape(H, W, 3)
-        truth = np.zeros(W * H, np.uint8)
-        truth[hit] = labels_hit
-        return rgb, truth.reshape(H, W), depth.reshape(H, W)
+        return mat.albedo * shade[:, None] + 255.0 * (mat.spec * spec_acc)[:, None] * np.array([1.0, 0.97, 0.93],
+                                                                                             np.float32)
 
 
 class _AroundScene(_Scene):
@@ -963,6 +1020,32 @@ def _smooth_field(rng: np.random.Generator, h: int, w: int, scale_px: float) -> 
     return _noise(rng, (h, w), (max(1.0, h / scale_px), max(1.0, w / scale_px)))
 
 
+@dataclass
+class _ErrorDraws:
+    """The random draws every error step shares, scaled to the frame (one per frame, in order)."""
+
+    rng: np.random.Generator
+    shape: tuple[int, int]  # (h, w)
+    scale: float  # pixel magnitudes are given for 640-pixel-wide frames
+    noise: float
+
+    def radius(self, lo: float = 1.0, hi: float = 4.0) -> int:
+        """A morphology radius in pixels, at least 1."""
+        return int(max(1, round(self.rng.uniform(lo, hi) * self.scale * self.noise)))
+
+    def smooth_field(self, scale_px: float) -> np.ndarray:
+        """Smooth noise over the frame with features about ``scale_px`` pixels apart."""
+        return _smooth_field(self.rng, *self.shape, scale_px)
+
+    def partial(self, mask: np.ndarray, lo: float, hi: float) -> np.ndarray:
+        """A random smooth part (fraction in [lo, hi]) of ``mask``."""
+        if not mask.any():
+            return mask
+        f = self.smooth_field(25 * self.scale + 3)
+        q = np.quantile(f[mask], 1 - self.rng.uniform(lo, hi))
+        return mask & (f >= q)
+
+
 def predict_errors(truth: np.ndarray, on_body: np.ndarray, rng: np.random.Generator, noise: float) -> np.ndarray:
     """A plausible automatic segmentation of one frame: ``truth`` with view-specific errors.
 
@@ -972,37 +1055,48 @@ def predict_errors(truth: np.ndarray, on_body: np.ndarray, rng: np.random.Genera
     lab = truth.copy()
     if noise <= 0:
         return lab
-    h, w = lab.shape
-    s = w / 640.0  # pixel magnitudes are given for 640-pixel-wide frames
+    draws = _ErrorDraws(rng, lab.shape, lab.shape[1] / 640.0, noise)
     p = min(1.0, noise)
+    lab = _jitter_boundaries(lab, draws)
+    _misjudge_outline(lab, draws)
+    _misjudge_tissue_extents(lab, draws)
+    _confuse_tissues(lab, draws, p)
+    _miss_small_regions(lab, draws, p)
+    _false_blobs(lab, truth, on_body, draws, p)
+    return lab
 
-    # smooth boundary jitter: a random displacement field, nearest-neighbour resampling
-    amp = 3.5 * s * noise
-    dx = amp * _smooth_field(rng, h, w, 40 * s + 4)
-    dy = amp * _smooth_field(rng, h, w, 40 * s + 4)
+
+def _jitter_boundaries(lab: np.ndarray, draws: _ErrorDraws) -> np.ndarray:
+    """Wavy boundaries: a smooth random displacement field, nearest-neighbour resampling."""
+    h, w = draws.shape
+    amp = 3.5 * draws.scale * draws.noise
+    dx = amp * draws.smooth_field(40 * draws.scale + 4)
+    dy = amp * draws.smooth_field(40 * draws.scale + 4)
     gx, gy = np.meshgrid(np.arange(w, dtype=np.float32), np.arange(h, dtype=np.float32))
-    lab = cv2.remap(lab, gx + dx, gy + dy, cv2.INTER_NEAREST, borderMode=cv2.BORDER_REPLICATE)
+    return cv2.remap(lab, gx + dx, gy + dy, cv2.INTER_NEAREST, borderMode=cv2.BORDER_REPLICATE)
 
-    def radius(lo: float = 1.0, hi: float = 4.0) -> int:
-        return int(max(1, round(rng.uniform(lo, hi) * s * noise)))
 
-    # wound-bed outline too big or too small
+def _misjudge_outline(lab: np.ndarray, draws: _ErrorDraws) -> None:
+    """The wound-bed outline drawn too big or too small (in place)."""
     bed = lab > 0
-    r = radius(2.0, 6.0)
-    if rng.random() < 0.5:
+    r = draws.radius(2.0, 6.0)
+    if draws.rng.random() < 0.5:
         grown = cv2.dilate(bed.astype(np.uint8), _disk(r)).astype(bool) & ~bed
         fill = cv2.dilate(lab, _disk(r))  # some neighbouring tissue id
         lab[grown] = fill[grown]
     else:
         lab[bed & ~cv2.erode(bed.astype(np.uint8), _disk(r)).astype(bool)] = BACKGROUND
-    # per-tissue erosion/dilation inside the bed
+
+
+def _misjudge_tissue_extents(lab: np.ndarray, draws: _ErrorDraws) -> None:
+    """Each tissue grown or shrunk inside the bed, in random order (in place)."""
     bed = lab > 0
-    for c in rng.permutation(WOUND_CLASSES):
+    for c in draws.rng.permutation(WOUND_CLASSES):
         m = lab == c
         if not m.any():
             continue
-        r = radius(1.0, 3.0)
-        if rng.random() < 0.5:
+        r = draws.radius(1.0, 3.0)
+        if draws.rng.random() < 0.5:
             lab[cv2.dilate(m.astype(np.uint8), _disk(r)).astype(bool) & bed] = c
         else:
             ring = m & ~cv2.erode(m.astype(np.uint8), _disk(r)).astype(bool)
@@ -1010,32 +1104,33 @@ def predict_errors(truth: np.ndarray, on_body: np.ndarray, rng: np.random.Genera
             fill = cv2.dilate(other, _disk(r + 1))
             lab[ring] = np.where(bed[ring], np.where(fill[ring] > 0, fill[ring], c), BACKGROUND)
 
-    def partial(mask: np.ndarray, lo: float, hi: float) -> np.ndarray:
-        """A random smooth part (fraction in [lo, hi]) of ``mask``."""
-        if not mask.any():
-            return mask
-        f = _smooth_field(rng, h, w, 25 * s + 3)
-        q = np.quantile(f[mask], 1 - rng.uniform(lo, hi))
-        return mask & (f >= q)
 
+def _confuse_tissues(lab: np.ndarray, draws: _ErrorDraws, p: float) -> None:
+    """A missed stretch of edge and the tissue mix-ups a 2D segmenter makes, each in some views
+    only (in place), so that views disagree and a multi-view vote can fix them."""
+    rng = draws.rng
     # part of the wound edge missed (glare, shadow)
     if rng.random() < 0.35 * p:
         bed = lab > 0
-        inner = cv2.erode(bed.astype(np.uint8), _disk(int(max(2, round(14 * s))))).astype(bool)
-        lab[partial(bed & ~inner, 0.2, 0.5)] = BACKGROUND
+        inner = cv2.erode(bed.astype(np.uint8), _disk(int(max(2, round(14 * draws.scale))))).astype(bool)
+        lab[draws.partial(bed & ~inner, 0.2, 0.5)] = BACKGROUND
     # slough taken for granulation (fully or partly) in a good fraction of the views
     if rng.random() < 0.38 * p:
-        lab[partial(lab == SLOUGH, 0.5, 1.0)] = GRANULATION
+        lab[draws.partial(lab == SLOUGH, 0.5, 1.0)] = GRANULATION
     # granulation taken for slough in a few
     if rng.random() < 0.12 * p:
-        lab[partial(lab == GRANULATION, 0.08, 0.25)] = SLOUGH
+        lab[draws.partial(lab == GRANULATION, 0.08, 0.25)] = SLOUGH
     # necrotic taken for slough / granulation
     if rng.random() < 0.2 * p:
-        lab[partial(lab == NECROTIC, 0.4, 1.0)] = SLOUGH if rng.random() < 0.6 else GRANULATION
+        lab[draws.partial(lab == NECROTIC, 0.4, 1.0)] = SLOUGH if rng.random() < 0.6 else GRANULATION
     # epithelial rim missed (part to skin, part to granulation)
     if rng.random() < 0.3 * p:
-        lab[partial(lab == EPITHELIAL, 0.4, 1.0)] = BACKGROUND if rng.random() < 0.6 else GRANULATION
-    # small regions missed
+        lab[draws.partial(lab == EPITHELIAL, 0.4, 1.0)] = BACKGROUND if rng.random() < 0.6 else GRANULATION
+
+
+def _miss_small_regions(lab: np.ndarray, draws: _ErrorDraws, p: float) -> None:
+    """Small necrotic, unknown and slough regions taken for granulation now and then (in place)."""
+    s = draws.scale
     for c in (NECROTIC, UNKNOWN, SLOUGH):
         m = (lab == c).astype(np.uint8)
         if not m.any():
@@ -1043,9 +1138,14 @@ def predict_errors(truth: np.ndarray, on_body: np.ndarray, rng: np.random.Genera
         n_cc, cc, stats, _ = cv2.connectedComponentsWithStats(m, connectivity=8)
         small = max(30 * s * s, 0.02 * max(1, int((lab > 0).sum())))
         for k in range(1, n_cc):
-            if stats[k, cv2.CC_STAT_AREA] < small and rng.random() < 0.5 * p:
+            if stats[k, cv2.CC_STAT_AREA] < small and draws.rng.random() < 0.5 * p:
                 lab[cc == k] = GRANULATION
-    # false-positive wound blobs on skin in a few views
+
+
+def _false_blobs(lab: np.ndarray, truth: np.ndarray, on_body: np.ndarray, draws: _ErrorDraws, p: float) -> None:
+    """False-positive wound blobs on the skin in a few views (in place)."""
+    rng, noise = draws.rng, draws.noise
+    h, w = draws.shape
     if rng.random() < 0.25 * p:
         skin = on_body & (truth == BACKGROUND)
         ys, xs = np.nonzero(skin)
@@ -1055,10 +1155,9 @@ def predict_errors(truth: np.ndarray, on_body: np.ndarray, rng: np.random.Genera
             k = rng.integers(len(ys))
             rx, ry = rng.uniform(0.015, 0.045) * w * np.sqrt(noise), rng.uniform(0.015, 0.045) * w * np.sqrt(noise)
             yy, xx = np.ogrid[:h, :w]
-            wobble = 0.35 * _smooth_field(rng, h, w, 10 * s + 2)
+            wobble = 0.35 * _smooth_field(rng, h, w, 10 * draws.scale + 2)
             blob = ((xx - xs[k]) / rx) ** 2 + ((yy - ys[k]) / ry) ** 2 + wobble < 1.0
             lab[blob & skin] = GRANULATION if rng.random() < 0.7 else EPITHELIAL
-    return lab
 
 
 # ------------------------------------------------------------------------------------------
@@ -1080,41 +1179,13 @@ def synthesize(out: Path, cfg: SynthConfig | None = None, *, force: bool = False
     out = Path(out)
     start = time.perf_counter()
     with building(out, force=force) as tmp:
-        rng = np.random.default_rng([cfg.seed, 0])
-        detail = int(np.clip(3.2 * max(cfg.width, cfg.height), 384, 2048))
-        key = np.array([0.35, -0.45, 1.0])
-        fill = np.array([-0.6, 0.5, 0.5])
-        if cfg.layout == "one-sided":
-            scene = _Scene(rng, detail)
-            cams, path_info = _camera_path(rng, scene, cfg)
-            lights = {"ambient": 0.30, "headlight": 0.12,
-                      "directional": [(key / np.linalg.norm(key), 0.62), (fill / np.linalg.norm(fill), 0.18)]}
-        else:  # all-around: the underside is seen too, so light comes from below as well
-            scene = _AroundScene(rng, detail)
-            cams, path_info = _orbit_path(rng, scene, cfg)
-            bounce = np.array([0.25, 0.4, -1.0])
-            lights = {"ambient": 0.30, "headlight": 0.2,
-                      "directional": [(key / np.linalg.norm(key), 0.55), (fill / np.linalg.norm(fill), 0.18),
-                                      (bounce / np.linalg.norm(bounce), 0.3)]}
-
+        scene, cams, path_info, lights = _scene_and_cameras(np.random.default_rng([cfg.seed, 0]), cfg)
         cap, truth_dir = tmp / "capture", tmp / "truth"
         for d in (cap / "images", cap / "annotations", cap / "predictions", truth_dir / "depth"):
             d.mkdir(parents=True)
         names = [f"frame_{i:03d}" if cfg.frames <= 1000 else f"frame_{i:05d}" for i in range(cfg.frames)]
         ann = set(annotated_indices(cfg.frames, cfg.annotated))
-        frames_json = []
-        for i in track(range(cfg.frames), "synth", enabled=progress):
-            cam, name = cams[i], names[i]
-            rgb, truth, depth = scene.render(cam, lights)
-            pred = predict_errors(truth, np.isfinite(depth), np.random.default_rng([cfg.seed, 1, i]), cfg.noise)
-            write_image(cap / "images" / f"{name}.png", rgb)
-            write_mask(cap / "predictions" / f"{name}.png", pred)
-            write_mask(truth_dir / f"{name}.png", truth)
-            np.save(truth_dir / "depth" / f"{name}.npy", depth)
-            if i in ann:
-                write_mask(cap / "annotations" / f"{name}.png", truth)
-            frames_json.append({"file_path": f"images/{name}.png",
-                                "transform_matrix": [[float(v) for v in row] for row in cam.c2w]})
+        frames_json = _write_frames(cap, truth_dir, scene, cams, lights, names, ann, cfg, progress)
         c0 = cams[0]
         transforms = {"camera_model": "OPENCV", "fl_x": c0.fx, "fl_y": c0.fy, "cx": c0.cx, "cy": c0.cy,
                       "w": cfg.width, "h": cfg.height, "k1": 0.0, "k2": 0.0, "p1": 0.0, "p2": 0.0,
@@ -1128,3 +1199,45 @@ def synthesize(out: Path, cfg: SynthConfig | None = None, *, force: bool = False
         (truth_dir / "scene.json").write_text(json.dumps(meta, indent=2))
     return SynthResult(capture_dir=out / "capture", truth_dir=out / "truth", num_frames=cfg.frames,
                        annotated=annotated, seconds=time.perf_counter() - start)
+
+
+def _scene_and_cameras(rng: np.random.Generator, cfg: SynthConfig) -> tuple[_Scene, list[Camera], dict, dict]:
+    """The layout's scene, camera path and lights (scene.json's ``camera_path`` is the path's info);
+    both draw from ``rng`` in this order, which the byte-identical-output promise depends on."""
+    detail = int(np.clip(3.2 * max(cfg.width, cfg.height), 384, 2048))
+    key = np.array([0.35, -0.45, 1.0])
+    fill = np.array([-0.6, 0.5, 0.5])
+    if cfg.layout == "one-sided":
+        scene = _Scene(rng, detail)
+        cams, path_info = _camera_path(rng, scene, cfg)
+        lights = {"ambient": 0.30, "headlight": 0.12,
+                  "directional": [(key / np.linalg.norm(key), 0.62), (fill / np.linalg.norm(fill), 0.18)]}
+    else:  # all-around: the underside is seen too, so light comes from below as well
+        scene = _AroundScene(rng, detail)
+        cams, path_info = _orbit_path(rng, scene, cfg)
+        bounce = np.array([0.25, 0.4, -1.0])
+        lights = {"ambient": 0.30, "headlight": 0.2,
+                  "directional": [(key / np.linalg.norm(key), 0.55), (fill / np.linalg.norm(fill), 0.18),
+                                  (bounce / np.linalg.norm(bounce), 0.3)]}
+    return scene, cams, path_info, lights
+
+
+def _write_frames(cap: Path, truth_dir: Path, scene: _Scene, cams: list[Camera], lights: dict, names: list[str],
+                  ann: set[int], cfg: SynthConfig, progress: bool) -> list[dict]:
+    """Render every frame and write its image, prediction, truth, depth and (if annotated) annotation;
+    returns the transforms.json frame entries. Each frame's prediction errors have their own
+    seed, so they do not depend on the frames before it."""
+    frames_json = []
+    for i in track(range(cfg.frames), "synth", enabled=progress):
+        cam, name = cams[i], names[i]
+        rgb, truth, depth = scene.render(cam, lights)
+        pred = predict_errors(truth, np.isfinite(depth), np.random.default_rng([cfg.seed, 1, i]), cfg.noise)
+        write_image(cap / "images" / f"{name}.png", rgb)
+        write_mask(cap / "predictions" / f"{name}.png", pred)
+        write_mask(truth_dir / f"{name}.png", truth)
+        np.save(truth_dir / "depth" / f"{name}.npy", depth)
+        if i in ann:
+            write_mask(cap / "annotations" / f"{name}.png", truth)
+        frames_json.append({"file_path": f"images/{name}.png",
+                            "transform_matrix": [[float(v) for v in row] for row in cam.c2w]})
+    return frames_json
