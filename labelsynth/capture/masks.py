@@ -249,6 +249,18 @@ def _from_color(rgb: np.ndarray, classes: ClassMap, table: ColorTable, path: Pat
 
 
 # --- writing ------------------------------------------------------------------------------
+def as_id_mask(mask: np.ndarray) -> np.ndarray:
+    """A (H, W) uint8 class-id array from any integer array of ids in 0..255 (ValueError otherwise)."""
+    mask = np.asarray(mask)
+    if mask.ndim != 2:
+        raise ValueError(f"a mask must be 2-D (H, W) class ids, got shape {mask.shape}")
+    if mask.dtype != np.uint8:
+        if mask.size and (mask.min() < 0 or mask.max() > 255):
+            raise ValueError("mask ids must be in 0..255")
+        mask = mask.astype(np.uint8)
+    return mask
+
+
 def write_mask(
     path: str | Path, mask: np.ndarray, classes: ClassMap | None = None, *, palette: bool | None = None
 ) -> Path:
@@ -263,13 +275,7 @@ def write_mask(
     """
     from PIL import Image
 
-    mask = np.asarray(mask)
-    if mask.ndim != 2:
-        raise ValueError(f"a mask must be (H,W), got shape {mask.shape}")
-    if mask.dtype != np.uint8:
-        if mask.size and (mask.min() < 0 or mask.max() > 255):
-            raise ValueError("mask values must be in 0..255")
-        mask = mask.astype(np.uint8)
+    mask = as_id_mask(mask)
     if palette is None:
         palette = classes is not None
     if palette and classes is None:

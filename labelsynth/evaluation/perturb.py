@@ -26,6 +26,7 @@ from collections.abc import Mapping, Sequence
 import cv2
 import numpy as np
 
+from ..capture.masks import as_id_mask
 from ..classes import BACKGROUND_ID, IGNORE_ID
 from ..errors import RecipeError
 
@@ -34,15 +35,6 @@ PERTURBATIONS = ("none", "erosion-dilation", "jitter", "half-frames")
 _FAR = np.float32(1e9)
 
 
-def _check_mask(mask: np.ndarray) -> np.ndarray:
-    mask = np.asarray(mask)
-    if mask.ndim != 2:
-        raise ValueError(f"a mask must be 2-D (H, W) class ids, got shape {mask.shape}")
-    if mask.dtype != np.uint8:
-        if mask.size and (mask.min() < 0 or mask.max() > 255):
-            raise ValueError("mask ids must be in 0..255")
-        mask = mask.astype(np.uint8)
-    return mask
 
 
 def _distance_to(region: np.ndarray) -> np.ndarray:
@@ -63,7 +55,7 @@ def erode(mask: np.ndarray, radius: int = 3) -> np.ndarray:
     Only background pulls the boundary in: tissue/tissue boundaries, ignore pixels and the
     image border do not (they are not wound boundaries).
     """
-    mask = _check_mask(mask)
+    mask = as_id_mask(mask)
     out = mask.copy()
     dist = _distance_to(mask == BACKGROUND_ID)
     out[(dist <= radius + 1e-4) & (mask != BACKGROUND_ID) & (mask != IGNORE_ID)] = BACKGROUND_ID
@@ -76,7 +68,7 @@ def dilate(mask: np.ndarray, radius: int = 3, rng: np.random.Generator | int | N
     Each non-background class grows into background only. Where two classes reach the same
     pixel the nearer one wins and exact ties are broken at random, never by id order.
     """
-    mask = _check_mask(mask)
+    mask = as_id_mask(mask)
     rng = _rng(rng)
     best = np.full(mask.shape, _FAR, dtype=np.float32)
     label = np.full(mask.shape, BACKGROUND_ID, dtype=np.uint8)
@@ -120,7 +112,7 @@ def _disk_kernel(radius: int) -> np.ndarray:
 
 def boundary_band(mask: np.ndarray, band: int = 3) -> np.ndarray:
     """Pixels (not ignore) that have a different, non-ignore label within ``band`` px."""
-    mask = _check_mask(mask)
+    mask = as_id_mask(mask)
     disk = _disk_kernel(band)
     near = np.zeros(mask.shape, dtype=np.uint8)
     for cid in np.unique(mask):
@@ -141,7 +133,7 @@ def boundary_jitter(
     land on its own class (no change), and a draw that falls on ignore or off the image
     leaves the pixel as it was.
     """
-    mask = _check_mask(mask)
+    mask = as_id_mask(mask)
     rng = _rng(rng)
     h, w = mask.shape
     ys, xs = np.nonzero(boundary_band(mask, band))
