@@ -222,6 +222,22 @@ def render_outputs(
     return masks
 
 
+def _write_run_json(out: Path, capture_dir: str | Path, mode: str, annotated_frames: list[str] | None,
+                    recipe: Recipe, device: torch.device, seed: int, stats: dict) -> None:
+    """OUT/run.json: what ran and how long each phase took (``labelsynth report`` reads it back)."""
+    run = {
+        "version": __version__,
+        "capture": str(Path(capture_dir).resolve()),
+        "labels": mode,
+        "annotated_frames": annotated_frames,
+        "recipe": recipe.to_dict(),
+        "device": str(device),
+        "seed": seed,
+        **stats,
+    }
+    (out / "run.json").write_text(json.dumps(run, indent=2, default=float))
+
+
 def expand(
     capture_dir: str | Path,
     out: str | Path,
@@ -269,23 +285,8 @@ def expand(
             _report(partial, capture, sem, masks, mode, seed=seed, progress=progress, mesh_format=mesh_format,
                     mm_per_unit=mm_per_unit)
             stats["seconds"]["report"] = time.time() - t0
-        (partial / "run.json").write_text(
-            json.dumps(
-                {
-                    "version": __version__,
-                    "capture": str(Path(capture_dir).resolve()),
-                    "labels": mode,
-                    "annotated_frames": None if annotated_frames is None else [
-                        f.name for f in capture.frames if f.annotation_path is not None],
-                    "recipe": rec.to_dict(),
-                    "device": str(dev),
-                    "seed": seed,
-                    **stats,
-                },
-                indent=2,
-                default=float,
-            )
-        )
+        chosen = None if annotated_frames is None else [f.name for f in capture.frames if f.annotation_path is not None]
+        _write_run_json(partial, capture_dir, mode, chosen, rec, dev, seed, stats)
     return ExpandResult(
         out=out,
         frames=capture.names,
@@ -295,7 +296,6 @@ def expand(
         geometry=stats["geometry"],
         semantic=stats["semantic"],
     )
-
 
 
 def refit_without(sem: SemanticField, capture: Capture, mode: str, seed: int = 0) -> Callable[[str], None]:
