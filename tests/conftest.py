@@ -15,10 +15,20 @@ from pathlib import Path
 # Tests must never need a display or a GPU.
 os.environ.setdefault("MPLBACKEND", "Agg")
 os.environ.setdefault("CUDA_VISIBLE_DEVICES", "")
+# Under pytest-xdist every worker would start as many compute threads as there are cores, so
+# two workers on two cores ran four busy threads: share the cores out instead.
+_WORKERS = int(os.environ.get("PYTEST_XDIST_WORKER_COUNT", "1") or 1)
+_THREADS = str(max(1, (os.cpu_count() or 1) // _WORKERS))
+for _var in ("OMP_NUM_THREADS", "MKL_NUM_THREADS", "OPENBLAS_NUM_THREADS"):
+    os.environ.setdefault(_var, _THREADS)
 
 import cv2  # noqa: E402
 import numpy as np  # noqa: E402
 import pytest  # noqa: E402
+import torch  # noqa: E402
+
+torch.set_num_threads(int(_THREADS))
+cv2.setNumThreads(int(_THREADS))
 
 TINY_OVERRIDES = [
     "geometry.iterations=250",
