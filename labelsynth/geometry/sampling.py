@@ -180,7 +180,7 @@ class RayWeights:
     weights: torch.Tensor  # (S,) T_i * alpha_i
 
 
-def neus_weights(field: _SDF, samples: PackedSamples, cos_anneal_ratio: float, *, train: bool) -> RayWeights:
+def neus_weights(sdf_field: _SDF, samples: PackedSamples, cos_anneal_ratio: float, *, train: bool) -> RayWeights:
     """The one place NeuS weights along packed rays are computed (RGB rendering, the semantic bake).
 
     The SDF gradient is first order and detached: second derivatives are paid only on the
@@ -190,9 +190,9 @@ def neus_weights(field: _SDF, samples: PackedSamples, cos_anneal_ratio: float, *
     """
     with torch.enable_grad():
         x = samples.positions.detach().requires_grad_(True)
-        sdf, feature = field.get_sdf(x)
+        sdf, feature = sdf_field.get_sdf(x)
         (grad,) = torch.autograd.grad(sdf.sum(), x, retain_graph=train)
     if not train:
         sdf, feature = sdf.detach(), feature.detach()
-    alpha = neus_alpha(sdf, grad, samples.dirs, samples.deltas, field.inv_s, cos_anneal_ratio)
+    alpha = neus_alpha(sdf, grad, samples.dirs, samples.deltas, sdf_field.inv_s, cos_anneal_ratio)
     return RayWeights(sdf, feature, grad, composite_weights(alpha, samples.ray_index, samples.num_rays))

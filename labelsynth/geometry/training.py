@@ -90,7 +90,7 @@ class GeometryStats:
 
 
 def render_rays_rgb(
-    field: SDFField,
+    sdf: SDFField,
     grid: OccupancyGrid,
     origins: torch.Tensor,
     dirs: torch.Tensor,
@@ -103,28 +103,28 @@ def render_rays_rgb(
     n = origins.shape[0]
     far = ray_box(origins, dirs)[1]
     if samples.positions.shape[0] == 0:
-        return field.get_background(dirs, origins, far), torch.zeros(n, device=origins.device), samples
-    along = neus_weights(field, samples, cos_anneal_ratio, train=train)
-    color = field.get_color(along.feature, F.normalize(along.gradient, dim=-1), samples.dirs)
+        return sdf.get_background(dirs, origins, far), torch.zeros(n, device=origins.device), samples
+    along = neus_weights(sdf, samples, cos_anneal_ratio, train=train)
+    color = sdf.get_color(along.feature, F.normalize(along.gradient, dim=-1), samples.dirs)
     rgb = accumulate(color, along.weights, samples.ray_index, n)
     opacity = accumulate_scalar(along.weights, samples.ray_index, n)
-    bg = field.get_background(dirs, origins, far, visible=(1.0 - opacity.detach()) > BACKGROUND_VISIBLE)
+    bg = sdf.get_background(dirs, origins, far, visible=(1.0 - opacity.detach()) > BACKGROUND_VISIBLE)
     rgb = rgb + (1.0 - opacity)[:, None] * bg
     return rgb, opacity, samples
 
 
-def _band(cfg: GeometryConfig, field: SDFField) -> float:
+def _band(cfg: GeometryConfig, sdf: SDFField) -> float:
     """Half-width of the sampled band around the surface: a few widths of NeuS's logistic density."""
-    return min(cfg.occupancy_band / float(field.inv_s.detach()), cfg.occupancy_max_band)
+    return min(cfg.occupancy_band / float(sdf.inv_s.detach()), cfg.occupancy_max_band)
 
 
-def _geometry_optimiser(field: SDFField, cfg: GeometryConfig):
+def _geometry_optimiser(sdf: SDFField, cfg: GeometryConfig):
     """Adam over the hash table, the MLPs and the NeuS variance; linear warm-up, then exponential
     decay to ``lr * lr_final_factor`` (the hash table needs a large rate early and a small one late)."""
     params = [
-        {"params": [field.encoding.table], "lr": cfg.lr},
-        {"params": [p for n, p in field.named_parameters() if n != "encoding.table" and n != "variance"], "lr": cfg.lr},
-        {"params": [field.variance], "lr": cfg.lr},
+        {"params": [sdf.encoding.table], "lr": cfg.lr},
+        {"params": [p for n, p in sdf.named_parameters() if n != "encoding.table" and n != "variance"], "lr": cfg.lr},
+        {"params": [sdf.variance], "lr": cfg.lr},
     ]
     opt = torch.optim.Adam(params, betas=(cfg.adam_beta1, cfg.adam_beta2), eps=cfg.adam_eps)
     gamma = cfg.lr_final_factor ** (1.0 / max(cfg.iterations, 1))
@@ -133,15 +133,15 @@ def _geometry_optimiser(field: SDFField, cfg: GeometryConfig):
     return opt, sched
 
 
-def _apply_schedules(field: SDFField, cfg: GeometryConfig, it: int) -> None:
+def _apply_schedules(sdf: SDFField, cfg: GeometryConfig, it: int) -> None:
     """Coarse to fine: switch on hash levels progressively, and raise the sharpness floor
     geometrically from ``inv_s_start`` to ``inv_s_end`` over the first ``inv_s_ramp`` of training."""
-    field.encoding.set_active_levels(cfg.levels_start + it // max(cfg.levels_every, 1))
+    sdf.encoding.set_active_levels(cfg.levels_start + it // max(cfg.levels_every, 1))
     ramp = min(1.0, it / max(cfg.inv_s_ramp * cfg.iterations, 1.0))
-    field.inv_s_floor.fill_(cfg.inv_s_start * (cfg.inv_s_end / cfg.inv_s_start) ** ramp)
+    sdf.inv_s_floor.fill_(cfg.inv_s_start * (cfg.inv_s_end / cfg.inv_s_start) ** ramp)
 
 
-def _eikonal_loss(field: SDFField, positions: torch.Tensor, cfg: GeometryConfig, gen: torch.Generator) -> torch.Tensor:
+def _eikonal_loss(sdf: SDFField, positions: torch.Tensor, cfg: GeometryConfig, gen: torch.Generator) -> torch.Tensor:
     """|grad sdf| = 1 on a subset of the ray samples (near the surface, where it matters) plus
     random points of the cube (so the whole cube stays a distance function); these are the only
     points that pay for second derivatives."""
@@ -150,7 +150,7 @@ def _eikonal_loss(field: SDFField, positions: torch.Tensor, cfg: GeometryConfig,
         pick = torch.randint(0, pts.shape[0], (cfg.eikonal_samples,), device=pts.device, generator=gen)
         pts = pts[pick]
     rand_pts = torch.rand(cfg.eikonal_samples // 4, 3, device=pts.device, generator=gen) * 2 - 1
-    _, _, eik_grad = field.sdf_and_gradient(torch.cat([pts, rand_pts]), create_graph=True)
+    _, _, eik_grad = sdf.sdf_and_gradient(torch.cat([pts, rand_pts]), create_graph=True)
     return ((eik_grad.norm(dim=-1) - 1.0) ** 2).mean()
 
 
@@ -167,7 +167,7 @@ def _ema(previous: float, value: float, first: bool) -> float:
 
 
 def train_geometry(
-    field: SDFField,
+    sdf: SDFField,
     bank: RayBank,
     cfg: GeometryConfig,
     *,
@@ -178,8 +178,8 @@ def train_geometry(
     device = bank.device
     torch.manual_seed(seed)
     gen = torch.Generator(device=device).manual_seed(seed)
-    field.train()
-    opt, sched = _geometry_optimiser(field, cfg)
+    sdf.train()
+    opt, sched = _geometry_optimiser(sdf, cfg)
     grid = OccupancyGrid(cfg.occupancy_resolution, device, margin=cfg.occupancy_margin, full_every=cfg.occupancy_full_every)
     n_rays = min(1024, cfg.max_rays)
     psnr_ema, spr_ema, occ = 0.0, 0.0, 1.0
@@ -187,13 +187,13 @@ def train_geometry(
     with make_progress(progress) as bar:
         task = bar.add_task("geometry", total=cfg.iterations, status="")
         for it in range(cfg.iterations):
-            _apply_schedules(field, cfg, it)
+            _apply_schedules(sdf, cfg, it)
             if it % cfg.occupancy_every == 0:
-                occ = grid.update(field.sdf_batched, _band(cfg, field))
+                occ = grid.update(sdf.sdf_batched, _band(cfg, sdf))
             origins, dirs, target = bank.sample(n_rays, gen)
             cos_ratio = min(1.0, it / max(cfg.cos_anneal_iters, 1))
-            rgb, _, samples = render_rays_rgb(field, grid, origins, dirs, cos_ratio, cfg.march_steps, train=True)
-            loss = F.l1_loss(rgb, target) + cfg.eikonal_weight * _eikonal_loss(field, samples.positions, cfg, gen)
+            rgb, _, samples = render_rays_rgb(sdf, grid, origins, dirs, cos_ratio, cfg.march_steps, train=True)
+            loss = F.l1_loss(rgb, target) + cfg.eikonal_weight * _eikonal_loss(sdf, samples.positions, cfg, gen)
             opt.zero_grad(set_to_none=True)
             loss.backward()
             opt.step()
@@ -205,8 +205,8 @@ def train_geometry(
                 mse = F.mse_loss(rgb, target).item()
             psnr_ema = _ema(psnr_ema, -10 * math.log10(max(mse, 1e-10)), it == 0)
             spr_ema = _ema(spr_ema, spr, it == 0)
-            bar.update(task, advance=1, status=f"psnr {psnr_ema:5.2f} rays {n_rays} spr {spr_ema:4.1f} s {float(field.inv_s.detach()):6.0f}")
-    grid.update(field.sdf_batched, _band(cfg, field), jitter=False, full=True)
-    field.eval()
-    stats = GeometryStats(cfg.iterations, time.time() - t0, psnr_ema, spr_ema, float(field.inv_s.detach()), occ)
+            bar.update(task, advance=1, status=f"psnr {psnr_ema:5.2f} rays {n_rays} spr {spr_ema:4.1f} s {float(sdf.inv_s.detach()):6.0f}")
+    grid.update(sdf.sdf_batched, _band(cfg, sdf), jitter=False, full=True)
+    sdf.eval()
+    stats = GeometryStats(cfg.iterations, time.time() - t0, psnr_ema, spr_ema, float(sdf.inv_s.detach()), occ)
     return grid, stats

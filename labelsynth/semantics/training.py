@@ -84,7 +84,7 @@ class BakedRays:
 
 @torch.no_grad()
 def sample_frozen(
-    field: SDFField,
+    sdf: SDFField,
     grid: OccupancyGrid,
     origins: torch.Tensor,
     dirs: torch.Tensor,
@@ -99,7 +99,7 @@ def sample_frozen(
     """
     device = origins.device
     out_pos, out_feat, out_w = [], [], []
-    fdim = field.cfg.feature_dim
+    fdim = sdf.cfg.feature_dim
     for s in range(0, origins.shape[0], chunk):
         o, d = origins[s : s + chunk], dirs[s : s + chunk]
         n = o.shape[0]
@@ -108,7 +108,7 @@ def sample_frozen(
         feat = torch.zeros(n, k, fdim, device=device)
         wk = torch.zeros(n, k, device=device)
         if samples.positions.shape[0] > 0:
-            along = neus_weights(field, samples, 1.0, train=False)
+            along = neus_weights(sdf, samples, 1.0, train=False)
             feature, w = along.feature, along.weights
             # Rank samples within each ray by weight: sort by (ray, -w) and take the first k.
             order = torch.argsort(samples.ray_index.double() * 4.0 - w.double().clamp(0, 1))
@@ -131,7 +131,7 @@ def sample_frozen(
 
 
 def bake_semantic_rays(
-    field: SDFField,
+    sdf: SDFField,
     grid: OccupancyGrid,
     frames: Sequence[LabelledFrame],
     classes: ClassMap,
@@ -144,7 +144,7 @@ def bake_semantic_rays(
     """Rays of labelled pixels only: frames without labels contribute nothing (loss gating)."""
     rng = np.random.default_rng(seed)
     lut = classes.id_to_index_lut()
-    device = field.encoding.table.device
+    device = sdf.encoding.table.device
     frame_counts = np.zeros((len(frames), classes.num_classes), dtype=np.int64)
     parts: list[tuple] = []
     with make_progress(progress) as bar:
@@ -163,7 +163,7 @@ def bake_semantic_rays(
             pixels = np.stack([valid % cam.width + 0.5, valid // cam.width + 0.5], -1)
             o, d = _camera_rays(cam, pixels)
             pos, feat, w = sample_frozen(
-                field, grid, torch.from_numpy(o).to(device), torch.from_numpy(d).to(device), steps, cfg.max_samples_per_ray
+                sdf, grid, torch.from_numpy(o).to(device), torch.from_numpy(d).to(device), steps, cfg.max_samples_per_ray
             )
             labels = torch.from_numpy(idx[valid]).to(device)
             n = len(valid)
@@ -186,7 +186,7 @@ def weighted_cross_entropy(
     return (w * ce).sum() / w.sum().clamp_min(1e-8)
 
 
-def make_semantic_head(field: SDFField, classes: ClassMap, cfg: SemanticConfig) -> SemanticHead:
+def make_semantic_head(sdf: SDFField, classes: ClassMap, cfg: SemanticConfig) -> SemanticHead:
     pos_enc = None
     if cfg.use_position:
         pos_enc = HashGridEncoding(
@@ -196,8 +196,8 @@ def make_semantic_head(field: SDFField, classes: ClassMap, cfg: SemanticConfig) 
             base_resolution=16,
             max_resolution=cfg.position_max_resolution,
         )
-    device = field.encoding.table.device
-    return SemanticHead(field.cfg.feature_dim, classes.num_classes, cfg.hidden, cfg.dropout, pos_enc).to(device)
+    device = sdf.encoding.table.device
+    return SemanticHead(sdf.cfg.feature_dim, classes.num_classes, cfg.hidden, cfg.dropout, pos_enc).to(device)
 
 
 @dataclass
