@@ -107,13 +107,18 @@ def expand(
         None, "--annotated-frames",
         help="Only these frames' annotations teach: names or 0-based indices (a,b,3), every:K or spread:N (default: all).",
     ),
+    report: bool = typer.Option(
+        True, "--report/--no-report",
+        help="Write the consistency report and the labelled mesh (its leave-one-out refits take minutes); "
+             "--no-report writes masks, labels.h5, field.pt and run.json only (`labelsynth report OUT` adds it later).",
+    ),
 ) -> None:
     """Fit a 3D semantic field to the capture and render consistent masks for every frame."""
     from .pipeline import expand as run_expand
 
     result = run_expand(
         capture, out, labels=labels, recipe=recipe, device=device, seed=seed, overrides=set_, force=force,
-        mesh_format=mesh_format, mm_per_unit=mm_per_unit, annotated_frames=annotated_frames,
+        mesh_format=mesh_format, mm_per_unit=mm_per_unit, annotated_frames=annotated_frames, report=report,
     )
     typer.echo(result.summary())
 

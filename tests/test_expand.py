@@ -99,3 +99,23 @@ def test_bad_label_mode_is_a_clear_error(tiny_expanded, tmp_path):
         expand(capture, tmp_path / "o", labels="predictions", progress=False)
     with pytest.raises(LabelsynthError, match="--labels must be one of"):
         expand(tiny_expanded.capture_dir, tmp_path / "o", labels="everything", progress=False)
+
+
+def test_cli_no_report_writes_masks_and_no_report(tiny_expanded, tmp_path):
+    """`expand --no-report`: the masks, dataset, field and run.json, and neither report nor mesh."""
+    from typer.testing import CliRunner
+
+    from labelsynth.cli import app
+
+    out = tmp_path / "masks_only"
+    res = CliRunner().invoke(app, [
+        "expand", str(tiny_expanded.capture_dir), "--out", str(out), "--recipe", "fast", "--device", "cpu",
+        "--labels", "annotations", "--no-report", "--set", "geometry.iterations=4", "--set", "semantic.iterations=4",
+        "--set", "semantic.min_epochs=0", "--set", "render.mesh_resolution=32",
+    ])
+    assert res.exit_code == 0, res.output
+    assert len(list((out / "masks").glob("*.png"))) == 8
+    for name in ("labels.h5", "field.pt", "run.json"):
+        assert (out / name).is_file()
+    assert not (out / "report.json").exists() and not (out / "mesh.ply").exists()
+    assert "report" not in json.loads((out / "run.json").read_text())["seconds"]
