@@ -182,6 +182,48 @@ def segment(
 
 @app.command()
 @friendly_errors
+def train(
+    sources: list[Path] = typer.Argument(..., metavar="SOURCE", help="labels.h5 files written by expand and/or capture folders (their annotations/)."),
+    out: Path = typer.Option(..., "--out", help="Model folder: model.onnx, checkpoint.pt, train.json, curves.png."),
+    arch: str = typer.Option("segformer", help="segformer (transformers, from a config) | unet | fpn (segmentation-models-pytorch)."),
+    encoder: Optional[str] = typer.Option(None, help="segformer: b0 | b1; unet/fpn: resnet18, mobilenet_v2, ... (default: b0 / resnet18)."),
+    steps: int = typer.Option(400, min=1, help="Optimiser steps (in all, counting those before --resume)."),
+    batch_size: int = typer.Option(8, "--batch-size", min=1, help="Crops per step."),
+    crop: int = typer.Option(256, min=16, help="Square training crop in pixels (smaller frames are padded with ignore)."),
+    lr: float = typer.Option(6e-4, help="Peak learning rate (AdamW, linear warm-up, cosine decay)."),
+    min_confidence: float = typer.Option(0.0, "--min-confidence", min=0.0, max=1.0, help="labels.h5 pixels less confident than this are ignored."),
+    confidence_weight: bool = typer.Option(True, "--confidence-weight/--no-confidence-weight", help="Weigh each pixel by its labels.h5 confidence."),
+    expert_weight: float = typer.Option(1.0, "--expert-weight", min=0.0, help="Weight of the pixels of expert-annotated frames."),
+    dice_weight: float = typer.Option(1.0, "--dice-weight", min=0.0, help="Weight of the soft Dice term beside cross-entropy."),
+    only_annotated: bool = typer.Option(False, "--only-annotated", help="From labels.h5, train on the expert-annotated frames only."),
+    val_captures: Optional[str] = typer.Option(
+        None, "--val-captures",
+        help="Comma list of sources (name or path) held out for validation (default: the last one with 3+ sources, "
+             "else the last block of frames of each).",
+    ),
+    eval_every: Optional[int] = typer.Option(None, "--eval-every", min=1, help="Validate and checkpoint every N steps (default: steps/10)."),
+    resume: bool = typer.Option(False, "--resume", help="Continue from OUT/checkpoint.pt up to --steps."),
+    force: bool = typer.Option(False, help="Replace the outputs of an earlier run in OUT."),
+    device: str = typer.Option("auto", help="auto | cpu | cuda"),
+    seed: int = typer.Option(0, help="Random seed."),
+    workers: int = typer.Option(0, min=0, help="DataLoader worker processes for augmentation."),
+) -> None:
+    """Train a 2D segmenter (ONNX for `segment`) from labels.h5 files and capture annotations."""
+    from .train import TrainConfig, train as run_train
+
+    cfg = TrainConfig(
+        arch=arch, encoder=encoder, steps=steps, batch_size=batch_size, crop=crop, lr=lr,
+        min_confidence=min_confidence, confidence_weight=confidence_weight, expert_weight=expert_weight,
+        dice_weight=dice_weight, only_annotated=only_annotated,
+        val_captures=[v for v in (val_captures or "").split(",") if v], eval_every=eval_every,
+        device=device, seed=seed, workers=workers,
+    )
+    result = run_train(sources, out, cfg, force=force, resume=resume)
+    typer.echo(result.summary())
+
+
+@app.command()
+@friendly_errors
 def bench(
     capture: Path = typer.Argument(..., help="Capture folder with predictions/ (and annotations/)."),
     truth: Path = typer.Option(..., "--truth", help="Folder of truth masks <image stem>.png for the frames to score."),

@@ -13,10 +13,14 @@ Conventions (SegFormer-style by default):
   give blocky edges);
 - class ids: the arg-max index is the class id unless ``id_map`` says otherwise; indices that
   the map does not name map to themselves. A target of 255 marks a class as "ignore".
+- a model written by ``labelsynth train`` carries its index -> id map and its training input
+  size in the ONNX metadata (``labelsynth_id_map``, ``labelsynth_input_size``): they are used
+  when ``id_map`` / ``input_size`` are not given.
 """
 
 from __future__ import annotations
 
+import json
 import time
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
@@ -34,6 +38,8 @@ from ..outdir import building
 from ..progress import make_progress
 
 DEFAULT_INPUT_SIZE = (512, 512)  # (width, height)
+META_ID_MAP = "labelsynth_id_map"  # written by labelsynth.train.export_onnx
+META_INPUT_SIZE = "labelsynth_input_size"
 IMAGENET_MEAN = (0.485, 0.456, 0.406)
 IMAGENET_STD = (0.229, 0.224, 0.225)
 DEVICES = ("auto", "cpu", "cuda")
@@ -151,13 +157,28 @@ class OnnxSegmenter:
         if device == "cuda" and "CUDAExecutionProvider" not in self.providers:
             raise SegmentError(f"{self.model_path}: --device cuda, but onnxruntime could not start CUDA for this model")
         self.provider = self.providers[0]
+        self.metadata = dict(self.session.get_modelmeta().custom_metadata_map or {})
+        if input_size is None and self.metadata.get(META_INPUT_SIZE):
+            input_size = self.metadata[META_INPUT_SIZE]  # the size `labelsynth train` trained at
         self._read_input(input_size)
         self._read_output()
+        if id_map is None:
+            id_map = self._metadata_id_map()
         self.id_map = parse_id_map(id_map) or {}
         self._mean = np.asarray(mean, dtype=np.float32).reshape(1, 1, 3) * 255.0
         self._inv_std = 1.0 / (np.asarray(std, dtype=np.float32).reshape(1, 1, 3) * 255.0)
         self._lut: np.ndarray | None = None
         self.num_model_classes: int | None = None
+
+    def _metadata_id_map(self) -> dict[int, int] | None:
+        """The index -> class id map that ``labelsynth train`` stores in the ONNX metadata, if any."""
+        text = self.metadata.get(META_ID_MAP)
+        if not text:
+            return None
+        try:
+            return {int(k): int(v) for k, v in json.loads(text).items()}
+        except (ValueError, TypeError, AttributeError) as exc:
+            raise SegmentError(f"{self.model_path}: metadata {META_ID_MAP!r} is not an index -> id map ({exc})") from None
 
     def _open_session(self, ort, device: str):
         """An onnxruntime session on the chosen providers; a file it cannot load is a one-line error."""

@@ -1,0 +1,383 @@
+"""The training run: sources -> split -> model -> optimiser steps -> MODEL_DIR.
+
+MODEL_DIR holds ``model.onnx`` (``export_onnx``), ``checkpoint.pt`` (model, optimiser, step,
+arguments, class table, history: ``--resume`` continues from its step), ``train.json``
+(arguments, class table, split, per-evaluation losses and validation Dice per class, times)
+and ``curves.png``. Every file is written beside itself as ``X.partial`` and renamed, so a
+reader never sees half a file; Ctrl-C saves the checkpoint of the last finished step first.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import time
+from collections import Counter
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+
+from .. import __version__
+from ..classes import IGNORE_ID, ClassMap
+from ..device import pick_device
+from ..outdir import partial_path, write_text_atomic
+from ..progress import console, make_progress
+from .data import FrameDataset, Split, TrainError, load_sources, make_target, normalize_image, split_by_capture
+from .loss import confusion_counts, segmentation_loss, upsample
+from .model import build_model, input_multiple, resolve_encoder
+
+OUTPUTS = ("model.onnx", "checkpoint.pt", "train.json", "curves.png")
+CHECKPOINT_KEYS = {"model", "optimizer", "step", "config", "classes", "history"}
+
+
+@dataclass
+class TrainConfig:
+    """Everything that decides a run (stored in checkpoint.pt and train.json)."""
+
+    arch: str = "segformer"
+    encoder: str | None = None  # None: the arch's default (segformer b0, unet/fpn resnet18)
+    steps: int = 400  # ~8 min at batch 8, crop 256 with SegFormer-b0 on 2 CPU cores (1.2 s a step)
+    batch_size: int = 8
+    crop: int = 256
+    lr: float = 6e-4
+    weight_decay: float = 0.01
+    warmup: float = 0.05  # fraction of the steps with a linear warm-up, then cosine decay
+    dice_weight: float = 1.0
+    min_confidence: float = 0.0
+    confidence_weight: bool = True
+    expert_weight: float = 1.0
+    only_annotated: bool = False
+    val_captures: list[str] = field(default_factory=list)
+    eval_every: int | None = None  # None: steps // 10
+    device: str = "auto"
+    seed: int = 0
+    workers: int = 0
+
+    def check(self) -> None:
+        for name, value, low in (("--steps", self.steps, 1), ("--batch-size", self.batch_size, 1), ("--crop", self.crop, 16)):
+            if value < low:
+                raise TrainError(f"{name} {value}: must be at least {low}")
+        if not self.lr > 0:
+            raise TrainError(f"--lr {self.lr}: must be positive")
+        if not 0.0 <= self.min_confidence <= 1.0:
+            raise TrainError(f"--min-confidence {self.min_confidence}: must be in 0..1")
+        if self.expert_weight < 0:
+            raise TrainError(f"--expert-weight {self.expert_weight}: must be >= 0")
+        if self.eval_every is not None and self.eval_every < 1:
+            raise TrainError(f"--eval-every {self.eval_every}: must be at least 1")
+
+
+@dataclass
+class TrainResult:
+    out: Path
+    step: int
+    steps: int
+    seconds: float
+    device: str
+    history: list[dict[str, Any]]
+    split: str
+    train_frames: int
+    val_frames: int
+    resumed_from: int | None = None
+
+    def summary(self) -> str:
+        last = self.history[-1] if self.history else {}
+        dice = last.get("val_dice") or {}
+        shown = ", ".join(f"{k} {v:.3f}" for k, v in dice.items() if v is not None)
+        resumed = f" (resumed at step {self.resumed_from})" if self.resumed_from is not None else ""
+        line = (f"trained {self.step}/{self.steps} steps{resumed} on {self.train_frames} frames in {self.seconds:.1f} s "
+                f"({self.device}) -> {self.out}/model.onnx")
+        if "train_loss" in last:
+            line += f"; loss {last['train_loss']:.3f}"
+        if shown:
+            line += f"; validation Dice ({self.val_frames} frames): {shown}"
+        return line
+
+
+# --- output folder ----------------------------------------------------------------------------
+def prepare_out(out: Path, sources: list[str | Path], *, force: bool, resume: bool) -> None:
+    """Refuse a non-empty MODEL_DIR (unless ``force``/``resume``) and any MODEL_DIR that is a source."""
+    for s in sources:
+        sp = Path(s).resolve()
+        if out.resolve() in (sp, sp.parent if sp.is_file() else sp):
+            raise TrainError(f"{out}: is a source (or holds one); train never writes into its sources")
+    if out.exists() and not out.is_dir():
+        raise TrainError(f"{out}: exists and is not a folder")
+    if resume:
+        if not (out / "checkpoint.pt").is_file():
+            raise TrainError(f"{out / 'checkpoint.pt'}: no checkpoint to resume from")
+        return
+    if out.exists() and any(out.iterdir()):
+        if not force:
+            raise TrainError(f"{out}: output folder exists and is not empty (use --force to replace it, --resume to continue)")
+        for name in OUTPUTS:
+            (out / name).unlink(missing_ok=True)
+    out.mkdir(parents=True, exist_ok=True)
+
+
+def save_checkpoint(path: Path, model, optimizer, step: int, config: TrainConfig, classes: ClassMap,
+                    history: list[dict[str, Any]]) -> None:
+    tmp = partial_path(path)
+    state = {
+        "model": {k: v.detach().cpu() for k, v in model.state_dict().items()},
+        "optimizer": optimizer.state_dict(),
+        "step": int(step),
+        "config": asdict(config),
+        "classes": json.dumps(classes.to_json(), sort_keys=True),
+        "history": json.dumps(history),
+        "labelsynth_version": __version__,
+    }
+    try:
+        torch.save(state, tmp)
+        os.replace(tmp, path)
+    except BaseException:
+        tmp.unlink(missing_ok=True)
+        raise
+
+
+def load_checkpoint(path: Path) -> dict[str, Any]:
+    """checkpoint.pt, checked: a file torch cannot read or that lacks a key is one line naming it."""
+    try:
+        state = torch.load(path, map_location="cpu", weights_only=True)
+    except Exception as exc:
+        reason = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
+        raise TrainError(f"{path}: not a usable checkpoint ({reason[:200]})") from None
+    if not isinstance(state, dict) or not CHECKPOINT_KEYS <= set(state):
+        missing = sorted(CHECKPOINT_KEYS - set(state)) if isinstance(state, dict) else sorted(CHECKPOINT_KEYS)
+        raise TrainError(f"{path}: not a labelsynth train checkpoint (missing {missing})")
+    try:
+        state["classes"] = ClassMap.from_dict(json.loads(state["classes"]), str(path))
+        state["history"] = json.loads(state["history"])
+    except Exception as exc:
+        raise TrainError(f"{path}: not a usable checkpoint (bad class table or history: {exc})") from None
+    return state
+
+
+# --- pieces of the loop ------------------------------------------------------------------------
+def learning_rate(cfg: TrainConfig, step: int) -> float:
+    warm = max(1, int(cfg.warmup * cfg.steps))
+    if step < warm:
+        return cfg.lr * (step + 1) / warm
+    t = min(1.0, (step - warm) / max(1, cfg.steps - warm))
+    return cfg.lr * 0.5 * (1.0 + math.cos(math.pi * t))
+
+
+def _forward_full(model, image: np.ndarray, multiple: int, device: torch.device) -> torch.Tensor:
+    """Logits (C,H,W) for one whole frame, padded to ``multiple`` and cropped back."""
+    x = normalize_image(image)[None].to(device)
+    h, w = x.shape[-2:]
+    ph, pw = (-h) % multiple, (-w) % multiple
+    if ph or pw:
+        x = F.pad(x, (0, pw, 0, ph))
+    logits = upsample(model(x), (h + ph, w + pw))
+    return logits[0, :, :h, :w]
+
+
+@torch.no_grad()
+def evaluate(model, split: Split, classes: ClassMap, cfg: TrainConfig, multiple: int, device: torch.device) -> tuple[float | None, dict[str, float | None]]:
+    """Validation loss (same weighting as training) and Dice per class over all validation pixels."""
+    if not split.val:
+        return None, {}
+    model.eval()
+    lut = classes.id_to_index_lut()
+    counts = torch.zeros(3, classes.num_classes, dtype=torch.long)
+    losses = []
+    for fr in split.val:
+        target, weight = make_target(fr.mask, fr.confidence, fr.annotated, lut, min_confidence=cfg.min_confidence,
+                                     expert_weight=cfg.expert_weight, confidence_weight=cfg.confidence_weight)
+        logits = _forward_full(model, fr.image, multiple, device)[None]
+        t = torch.from_numpy(target).long()[None].to(device)
+        loss, _ = segmentation_loss(logits, t, torch.from_numpy(weight)[None].to(device), dice_weight=cfg.dice_weight)
+        if (t != IGNORE_ID).any():
+            losses.append(float(loss))
+        counts += confusion_counts(logits.argmax(1)[0], t[0], classes.num_classes)
+    model.train()
+    inter, npred, ntrue = counts.double()
+    dice = {}
+    for i, name in enumerate(classes.names):
+        denom = float(npred[i] + ntrue[i])
+        dice[name] = None if denom == 0 else float(2 * inter[i] / denom)
+    return (float(np.mean(losses)) if losses else None), dice
+
+
+def _frame_size(split: Split) -> tuple[int, int]:
+    """The most common (W, H) of the frames: the size ``segment`` feeds the model by default."""
+    sizes = Counter((fr.image.shape[1], fr.image.shape[0]) for fr in split.train + split.val)
+    return sizes.most_common(1)[0][0]
+
+
+def write_curves(path: Path, history: list[dict[str, Any]], class_names: list[str]) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    steps = [h["step"] for h in history]
+    fig, (ax_loss, ax_dice) = plt.subplots(1, 2, figsize=(10, 4))
+    ax_loss.plot(steps, [h.get("train_loss") for h in history], label="train")
+    if any(h.get("val_loss") is not None for h in history):
+        ax_loss.plot(steps, [np.nan if h.get("val_loss") is None else h["val_loss"] for h in history], label="validation")
+    ax_loss.set_xlabel("step")
+    ax_loss.set_ylabel("loss (CE + Dice)")
+    ax_loss.legend()
+    for name in class_names:
+        ys = [np.nan if (h.get("val_dice") or {}).get(name) is None else h["val_dice"][name] for h in history]
+        if not all(np.isnan(ys)):
+            ax_dice.plot(steps, ys, label=name)
+    ax_dice.set_xlabel("step")
+    ax_dice.set_ylabel("validation Dice")
+    ax_dice.set_ylim(0, 1)
+    if ax_dice.lines:
+        ax_dice.legend(fontsize=7)
+    fig.tight_layout()
+    tmp = partial_path(path)
+    try:
+        fig.savefig(tmp, format="png", dpi=100)
+        os.replace(tmp, path)
+    finally:
+        plt.close(fig)
+        tmp.unlink(missing_ok=True)
+
+
+def _infinite(loader):
+    while True:
+        yield from loader
+
+
+# --- the run -----------------------------------------------------------------------------------
+def train(sources: list[str | Path], out: str | Path, cfg: TrainConfig | None = None, *, force: bool = False,
+          resume: bool = False, progress: bool = True, log=None) -> TrainResult:
+    """Train a 2D segmenter on ``sources`` (labels.h5 files and capture folders) into ``out``."""
+    cfg = cfg or TrainConfig()
+    cfg.check()
+    out = Path(out)
+    say = log or (lambda msg: console.print(msg, markup=False, highlight=False))
+    t0 = time.perf_counter()
+    prepare_out(out, sources, force=force, resume=resume)
+    state = load_checkpoint(out / "checkpoint.pt") if resume else None
+    if state is not None:  # what the model is comes from the checkpoint
+        saved = state["config"]
+        cfg.arch, cfg.encoder = saved["arch"], saved["encoder"]
+
+    loaded, classes = load_sources(list(sources), cfg.only_annotated)
+    if state is not None and state["classes"].to_json() != classes.to_json():
+        raise TrainError(f"{out / 'checkpoint.pt'}: its class table differs from the sources' ({loaded[0].path})")
+    split = split_by_capture(loaded, cfg.val_captures)
+    if not split.train:
+        raise TrainError("no training frames are left after the validation split")
+    say(split.description)
+    cfg.encoder = resolve_encoder(cfg.arch, cfg.encoder)
+    eval_every = cfg.eval_every or max(1, cfg.steps // 10)
+
+    device = pick_device(cfg.device)
+    torch.manual_seed(cfg.seed)
+    model = build_model(cfg.arch, cfg.encoder, classes.num_classes).to(device)
+    optimizer = torch.optim.AdamW(model.parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay)
+    step, history, resumed_from = 0, [], None
+    if state is not None:
+        try:
+            model.load_state_dict(state["model"])
+            optimizer.load_state_dict(state["optimizer"])
+        except (RuntimeError, ValueError, KeyError) as exc:
+            raise TrainError(f"{out / 'checkpoint.pt'}: does not fit a {cfg.arch}/{cfg.encoder} model "
+                             f"({str(exc).splitlines()[0][:200]})") from None
+        step = resumed_from = int(state["step"])
+        history = [h for h in state["history"] if h["step"] <= step]
+        say(f"resuming from step {step} of {out / 'checkpoint.pt'}")
+    load_seconds = time.perf_counter() - t0
+
+    from .augment import build_augment
+
+    dataset = FrameDataset(split.train, classes, build_augment(cfg.crop, seed=cfg.seed + step),
+                           min_confidence=cfg.min_confidence, expert_weight=cfg.expert_weight,
+                           confidence_weight=cfg.confidence_weight)
+    generator = torch.Generator().manual_seed(cfg.seed + step)
+    loader = torch.utils.data.DataLoader(dataset, batch_size=min(cfg.batch_size, len(dataset)), shuffle=True,
+                                         drop_last=True, num_workers=cfg.workers, generator=generator)
+    multiple = input_multiple(cfg.arch)
+    ckpt = out / "checkpoint.pt"
+    train_start = time.perf_counter()
+    window: list[float] = []
+    ema = None
+    interrupted = False
+
+    def record(val: bool = True) -> None:
+        entry: dict[str, Any] = {"step": step, "seconds": round(time.perf_counter() - train_start, 3),
+                                 "train_loss": float(np.mean(window)) if window else None,
+                                 "lr": learning_rate(cfg, max(step - 1, 0))}
+        if val:
+            entry["val_loss"], entry["val_dice"] = evaluate(model, split, classes, cfg, multiple, device)
+        history.append(entry)
+        window.clear()
+
+    model.train()
+    batches = _infinite(loader)
+    try:
+        with make_progress(progress) as bar:
+            task = bar.add_task("train", total=cfg.steps, completed=min(step, cfg.steps), status="")
+            while step < cfg.steps:
+                batch = next(batches)
+                for g in optimizer.param_groups:
+                    g["lr"] = learning_rate(cfg, step)
+                logits = model(batch["image"].to(device))
+                loss, _ = segmentation_loss(logits, batch["target"].to(device), batch["weight"].to(device),
+                                            dice_weight=cfg.dice_weight)
+                optimizer.zero_grad(set_to_none=True)
+                loss.backward()
+                optimizer.step()
+                step += 1
+                value = float(loss.detach())
+                window.append(value)
+                ema = value if ema is None else 0.9 * ema + 0.1 * value
+                bar.update(task, completed=step, status=f"loss {ema:.3f}")
+                if step % eval_every == 0 or step == cfg.steps:
+                    record()
+                    save_checkpoint(ckpt, model, optimizer, step, cfg, classes, history)
+    except KeyboardInterrupt:
+        interrupted = True
+        if window:
+            record(val=False)
+        save_checkpoint(ckpt, model, optimizer, step, cfg, classes, history)
+        say(f"interrupted at step {step}: {ckpt} saved; continue with --resume")
+    train_seconds = time.perf_counter() - train_start
+
+    export_seconds = 0.0
+    if not interrupted:
+        if not history or history[-1]["step"] != step:  # e.g. resumed at or past --steps
+            record()
+            save_checkpoint(ckpt, model, optimizer, step, cfg, classes, history)
+        from .export_onnx import export_onnx
+
+        t_export = time.perf_counter()
+        export_onnx(model, out / "model.onnx", classes, _frame_size(split))
+        export_seconds = time.perf_counter() - t_export
+        write_curves(out / "curves.png", history, classes.names)
+
+    seconds = time.perf_counter() - t0
+    report = {
+        "labelsynth_version": __version__,
+        "sources": [str(Path(s)) for s in sources],
+        "arguments": asdict(cfg),
+        "classes": classes.to_json(),
+        "split": {"description": split.description, "train_frames": len(split.train),
+                  "val_frames": len(split.val), "val_sources": split.val_sources},
+        "device": str(device),
+        "step": step,
+        "resumed_from": resumed_from,
+        "interrupted": interrupted,
+        "history": history,
+        "times": {"load_s": round(load_seconds, 3), "train_s": round(train_seconds, 3),
+                  "export_s": round(export_seconds, 3), "total_s": round(seconds, 3)},
+        "outputs": {"onnx": "model.onnx", "input": "pixel_values (N,3,H,W) RGB, ImageNet mean/std",
+                    "output": "logits (N,C,h,w)", "input_size": "x".join(map(str, _frame_size(split)))},
+    }
+    write_text_atomic(out / "train.json", json.dumps(report, indent=2))
+    if interrupted:
+        raise KeyboardInterrupt
+    return TrainResult(out, step, cfg.steps, seconds, str(device), history, split.description, len(split.train),
+                       len(split.val), resumed_from)

@@ -1,0 +1,318 @@
+"""`labelsynth train`: end to end on tiny sources, augmentation alignment, weighting, resume,
+and the one-line errors for bad input."""
+
+from __future__ import annotations
+
+import json
+import os
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+from typer.testing import CliRunner
+
+from labelsynth.classes import IGNORE_ID, ClassMap
+from labelsynth.cli import app
+from labelsynth.export import LabelsWriter
+from labelsynth.train.data import TrainError, load_sources, make_target, split_by_capture
+from labelsynth.train.loss import segmentation_loss
+
+W, H = 64, 48
+TINY = ["--steps", "2", "--batch-size", "2", "--crop", "32", "--device", "cpu", "--eval-every", "1"]
+
+
+@pytest.fixture(scope="module")
+def sources(tmp_path_factory) -> dict[str, Path]:
+    """Two tiny synthetic captures and a labels.h5 (predictions as labels, a known confidence)."""
+    from labelsynth.capture import load_capture
+    from labelsynth.evaluation.synth import SynthConfig, synthesize
+
+    root = tmp_path_factory.mktemp("train_sources")
+    caps = {}
+    for seed in (0, 1):
+        syn = synthesize(root / f"syn{seed}", SynthConfig(frames=4, annotated=2, width=W, height=H, seed=seed),
+                         progress=False)
+        caps[f"cap{seed}"] = syn.capture_dir
+    cap = load_capture(caps["cap1"])
+    h5 = root / "expanded" / "labels.h5"
+    with LabelsWriter(h5, len(cap), cap.classes, source=caps["cap1"]) as w:
+        for i, frame in enumerate(cap.frames):
+            conf = np.full((H, W), 0.9, dtype=np.float32)
+            conf[:, : W // 2] = 0.3
+            w.add(frame.name, cap.load_image(i), cap.load_prediction(i), conf, frame.annotation_path is not None)
+    return {**caps, "h5": h5, "root": root}
+
+
+def _invoke(*args: str):
+    return CliRunner().invoke(app, ["train", *map(str, args)])
+
+
+def _one_line_error(result, *needles: str) -> str:
+    assert result.exit_code == 2, result.output
+    lines = [ln for ln in result.output.splitlines() if ln.strip()]
+    err = [ln for ln in lines if ln.startswith("labelsynth: error:")]
+    assert len(err) == 1, result.output
+    for needle in needles:
+        assert needle in err[0], err[0]
+    return err[0]
+
+
+# --- end to end -----------------------------------------------------------------------------------
+def test_train_two_sources_writes_everything_and_segment_runs_it(sources, tmp_path):
+    import onnx
+
+    from labelsynth.evaluation.segment import segment_capture
+
+    before = {p: p.stat().st_mtime_ns for p in sources["cap0"].rglob("*")}
+    out = tmp_path / "model"
+    result = _invoke(sources["cap0"], sources["h5"], "--out", out, *TINY, "--min-confidence", "0.5",
+                     "--expert-weight", "4")
+    assert result.exit_code == 0, result.output
+    assert "trained 2/2 steps" in result.output
+    for name in ("model.onnx", "checkpoint.pt", "train.json", "curves.png"):
+        assert (out / name).is_file() and (out / name).stat().st_size > 0, name
+    assert not list(out.glob("*.partial"))
+    assert {p: p.stat().st_mtime_ns for p in sources["cap0"].rglob("*")} == before  # sources untouched
+
+    report = json.loads((out / "train.json").read_text())
+    classes = ClassMap.default()
+    assert report["classes"] == classes.to_json()
+    assert report["arguments"]["min_confidence"] == 0.5 and report["arguments"]["expert_weight"] == 4
+    assert report["step"] == 2 and [h["step"] for h in report["history"]] == [1, 2]
+    assert set(report["history"][-1]["val_dice"]) == set(classes.names)
+    assert "last contiguous block" in report["split"]["description"]
+    assert report["times"]["total_s"] > 0
+
+    model = onnx.load(str(out / "model.onnx"))
+    assert model.graph.input[0].name == "pixel_values"
+    meta = {p.key: p.value for p in model.metadata_props}
+    assert json.loads(meta["labelsynth_classes"]) == classes.to_json()
+    assert meta["labelsynth_input_size"] == f"{W}x{H}"
+
+    rep = segment_capture(sources["cap0"], out / "model.onnx", tmp_path / "seg", progress=False)  # no id_map
+    masks = sorted((tmp_path / "seg").glob("*.png"))
+    assert len(masks) == 4 and rep.input_size == (W, H) and not rep.unknown_ids
+    import cv2
+
+    assert cv2.imread(str(masks[0]), cv2.IMREAD_UNCHANGED).shape == (H, W)
+
+
+def test_segment_reads_a_non_identity_id_map_from_the_metadata(tmp_path):
+    """Class ids 0 and 7: the model's index 1 must come out as id 7 without --id-map."""
+    from labelsynth.evaluation.segment import OnnxSegmenter
+    from labelsynth.train.export_onnx import export_onnx
+
+    classes = ClassMap.from_dict({"classes": [{"id": 0, "name": "background"}, {"id": 7, "name": "wound"}]})
+
+    class Fixed(torch.nn.Module):
+        def forward(self, pixel_values):
+            return torch.stack([pixel_values[:, 0] * 0, pixel_values[:, 0] * 0 + 1], dim=1)
+
+    export_onnx(Fixed(), tmp_path / "m.onnx", classes, (32, 24))
+    seg = OnnxSegmenter(tmp_path / "m.onnx", device="cpu")
+    assert seg.input_size == (32, 24)
+    assert np.unique(seg.predict(np.zeros((10, 12, 3), np.uint8))).tolist() == [7]
+
+
+def test_resume_continues_the_step_count(sources, tmp_path):
+    out = tmp_path / "model"
+    assert _invoke(sources["cap0"], sources["cap1"], "--out", out, *TINY).exit_code == 0
+    refused = _invoke(sources["cap0"], sources["cap1"], "--out", out, *TINY)
+    _one_line_error(refused, str(out), "not empty")
+    result = _invoke(sources["cap0"], sources["cap1"], "--out", out, *TINY[2:], "--steps", "4", "--resume")
+    assert result.exit_code == 0, result.output
+    assert "resumed at step 2" in result.output
+    report = json.loads((out / "train.json").read_text())
+    assert report["resumed_from"] == 2 and report["step"] == 4
+    assert [h["step"] for h in report["history"]] == [1, 2, 3, 4]
+    assert torch.load(out / "checkpoint.pt", weights_only=True)["step"] == 4
+
+
+def test_interrupt_saves_a_checkpoint_that_resumes(sources, tmp_path, monkeypatch):
+    from labelsynth.train import loop
+
+    calls = {"n": 0}
+    real = loop.segmentation_loss
+
+    def interrupting(*args, **kwargs):
+        calls["n"] += 1
+        if calls["n"] == 3:  # the third training step (validation does not call this: eval_every is large)
+            raise KeyboardInterrupt
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(loop, "segmentation_loss", interrupting)
+    out = tmp_path / "model"
+    cfg = loop.TrainConfig(steps=5, batch_size=2, crop=32, device="cpu", eval_every=100)
+    with pytest.raises(KeyboardInterrupt):
+        loop.train([sources["cap0"], sources["cap1"]], out, cfg, progress=False, log=lambda m: None)
+    assert torch.load(out / "checkpoint.pt", weights_only=True)["step"] == 2
+    assert json.loads((out / "train.json").read_text())["interrupted"] is True
+    monkeypatch.setattr(loop, "segmentation_loss", real)
+    res = loop.train([sources["cap0"], sources["cap1"]], out, loop.TrainConfig(steps=3, batch_size=2, crop=32,
+                     device="cpu"), resume=True, progress=False, log=lambda m: None)
+    assert res.resumed_from == 2 and res.step == 3 and (out / "model.onnx").is_file()
+
+
+# --- augmentation ---------------------------------------------------------------------------------
+@pytest.mark.parametrize("seed", range(6))
+def test_augmentation_keeps_image_mask_and_weight_aligned(seed):
+    from labelsynth.train.augment import build_augment
+
+    image = np.zeros((H, W, 3), np.uint8)
+    mask = np.zeros((H, W), np.uint8)
+    image[12:36, 20:44] = 255
+    mask[12:36, 20:44] = 1
+    weight = mask.astype(np.float32) * 2 + 1
+    t = build_augment(40, seed=seed, photometric=False)
+    out = t(image=image, mask=mask, weight=weight)
+    img, msk, wgt = out["image"], out["mask"], out["weight"]
+    assert img.shape == (40, 40, 3) and msk.shape == (40, 40) and wgt.shape == (40, 40)
+    assert set(np.unique(msk).tolist()) <= {0, 1, IGNORE_ID}  # nearest: no blended ids
+    bright = img[..., 0] > 127
+    labelled = msk != IGNORE_ID
+    # The square stays on the same pixels (edges may differ by the image's interpolation).
+    disagree = (bright != (msk == 1)) & labelled
+    edge = np.zeros_like(disagree)
+    m1 = (msk == 1).astype(np.uint8)
+    import cv2
+
+    edge = cv2.dilate(m1, np.ones((3, 3), np.uint8)) != cv2.erode(m1, np.ones((3, 3), np.uint8))
+    assert not (disagree & ~edge).any()
+    np.testing.assert_array_equal(wgt[labelled], (msk[labelled] * 2 + 1).astype(np.float32))
+
+
+def test_augmentation_pads_small_frames_with_ignore():
+    from labelsynth.train.augment import build_augment
+
+    out = build_augment(96, seed=0, geometric=False, photometric=False)(
+        image=np.full((H, W, 3), 200, np.uint8), mask=np.zeros((H, W), np.uint8), weight=np.ones((H, W), np.float32))
+    assert out["mask"].shape == (96, 96)
+    assert (out["mask"] == IGNORE_ID).sum() == 96 * 96 - H * W
+    assert (out["image"][out["mask"] == IGNORE_ID] == 0).all()
+
+
+def test_importing_the_package_does_not_import_albumentations():
+    import subprocess
+    import sys
+
+    code = "import sys, labelsynth, labelsynth.train, labelsynth.cli; print('albumentations' in sys.modules)"
+    env = {k: v for k, v in os.environ.items() if k != "NO_ALBUMENTATIONS_UPDATE"}
+    assert subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env).stdout.strip() == "False"
+
+
+# --- confidence and expert weighting ---------------------------------------------------------------
+def test_min_confidence_ignores_and_expert_weight_applies():
+    lut = ClassMap.default().id_to_index_lut()
+    mask = np.array([[0, 1, 2, IGNORE_ID]], np.uint8)
+    conf = np.array([[0.9, 0.4, 0.6, 1.0]], np.float16)
+    target, weight = make_target(mask, conf, True, lut, min_confidence=0.5, expert_weight=4.0)
+    assert target.tolist() == [[0, IGNORE_ID, 2, IGNORE_ID]]
+    np.testing.assert_allclose(weight, [[3.6, 0.0, 2.4, 0.0]], rtol=1e-3)
+    _, plain = make_target(mask, conf, False, lut, min_confidence=0.5, expert_weight=4.0)
+    np.testing.assert_allclose(plain, [[0.9, 0.0, 0.6, 0.0]], rtol=1e-3)
+    _, flat = make_target(mask, conf, True, lut, expert_weight=4.0, confidence_weight=False)
+    np.testing.assert_allclose(flat, [[4.0, 4.0, 4.0, 0.0]])
+
+
+def test_loss_ignores_255_and_follows_the_weights():
+    torch.manual_seed(0)
+    logits = torch.randn(1, 3, 4, 4)
+    target = torch.randint(0, 3, (1, 4, 4))
+    target[0, 0] = IGNORE_ID
+    weight = torch.ones(1, 4, 4)
+    base, _ = segmentation_loss(logits, target, weight)
+    changed = logits.clone()
+    changed[0, :, 0] = torch.randn(3, 4) * 10  # ignored pixels: any logits, same loss
+    assert torch.allclose(segmentation_loss(changed, target, weight)[0], base)
+    zero_w = weight.clone()
+    zero_w[0, 1] = 0  # a weight of 0 is the same as ignore
+    ignored = target.clone()
+    ignored[0, 1] = IGNORE_ID
+    assert torch.allclose(segmentation_loss(logits, target, zero_w)[0], segmentation_loss(logits, ignored, weight)[0])
+
+
+def test_labels_h5_min_confidence_reaches_the_training_targets(sources):
+    from labelsynth.train.data import FrameDataset
+
+    loaded, classes = load_sources([sources["h5"]])
+    ds = FrameDataset(split_by_capture(loaded).train, classes, min_confidence=0.5, expert_weight=3.0)
+    item = ds[0]
+    assert (item["target"][:, : W // 2] == IGNORE_ID).all()
+    right = item["weight"][:, W // 2 :][item["target"][:, W // 2 :] != IGNORE_ID]
+    expected = 0.9 * (3.0 if loaded[0].annotated[0] else 1.0)
+    assert torch.allclose(right, torch.full_like(right, expected), rtol=1e-2)
+
+
+# --- the split ------------------------------------------------------------------------------------
+def test_split_is_by_capture(sources):
+    loaded, _ = load_sources([sources["cap0"], sources["cap1"], sources["h5"]])
+    split = split_by_capture(loaded)
+    assert {fr.source for fr in split.val} == {"expanded"} and len(split.val) == 4
+    assert "expanded" not in {fr.source for fr in split.train}
+    split = split_by_capture(loaded, [str(sources["cap0"])])
+    assert len(split.val) == 2 and split.val_sources == [str(sources["cap0"])]
+    with pytest.raises(TrainError, match="not one of the sources"):
+        split_by_capture(loaded, ["nope"])
+
+
+# --- bad input: one line naming the file -----------------------------------------------------------
+def test_mixed_class_tables_name_the_file(sources, tmp_path):
+    other = ClassMap.from_dict({"classes": [{"id": 0, "name": "background"}, {"id": 1, "name": "wound"}]})
+    h5 = tmp_path / "other" / "labels.h5"
+    with LabelsWriter(h5, 1, other) as w:
+        w.add("a", np.zeros((H, W, 3), np.uint8), np.zeros((H, W), np.uint8))
+    _one_line_error(_invoke(sources["cap0"], h5, "--out", tmp_path / "m", *TINY), str(h5), "class table")
+
+
+def test_corrupt_checkpoint_names_the_file(sources, tmp_path):
+    out = tmp_path / "m"
+    out.mkdir()
+    (out / "checkpoint.pt").write_bytes(b"not a checkpoint at all")
+    _one_line_error(_invoke(sources["cap0"], "--out", out, *TINY, "--resume"), str(out / "checkpoint.pt"),
+                    "checkpoint")
+
+
+def test_labels_h5_missing_datasets_or_other_version(tmp_path):
+    import h5py
+
+    from labelsynth.export.dataset import FORMAT
+
+    bad = tmp_path / "missing.h5"
+    with h5py.File(bad, "w") as f:
+        f.attrs["format"], f.attrs["format_version"] = FORMAT, 1
+        f.create_dataset("images", data=np.zeros((1, 4, 4, 3), np.uint8))
+    _one_line_error(_invoke(bad, "--out", tmp_path / "m", *TINY), str(bad), "masks")
+    old = tmp_path / "old.h5"
+    with h5py.File(old, "w") as f:
+        f.attrs["format"], f.attrs["format_version"] = FORMAT, 99
+    _one_line_error(_invoke(old, "--out", tmp_path / "m", *TINY), str(old), "version")
+    (tmp_path / "junk.h5").write_bytes(b"junk")
+    _one_line_error(_invoke(tmp_path / "junk.h5", "--out", tmp_path / "m", *TINY), "junk.h5")
+
+
+def test_capture_without_annotations(sources, tmp_path):
+    import shutil
+
+    cap = tmp_path / "bare"
+    shutil.copytree(sources["cap0"], cap)
+    shutil.rmtree(cap / "annotations")
+    _one_line_error(_invoke(cap, "--out", tmp_path / "m", *TINY), str(cap), "no annotations")
+
+
+def test_smp_arch_without_a_working_install_is_one_line(sources, tmp_path, monkeypatch):
+    import importlib.util
+
+    try:
+        import segmentation_models_pytorch  # noqa: F401
+
+        pytest.skip("segmentation-models-pytorch works here")
+    except Exception:
+        pass
+    assert importlib.util  # the error must still be one line
+    _one_line_error(_invoke(sources["cap0"], "--out", tmp_path / "m", *TINY, "--arch", "unet"), "--arch unet")
+
+
+def test_a_source_given_twice_and_an_out_that_is_a_source(sources, tmp_path):
+    _one_line_error(_invoke(sources["cap0"], sources["cap0"], "--out", tmp_path / "m", *TINY), "given twice")
+    _one_line_error(_invoke(sources["h5"], "--out", sources["h5"].parent, *TINY), "train never writes into its sources")
