@@ -194,6 +194,7 @@ def train(
     min_confidence: float = typer.Option(0.0, "--min-confidence", min=0.0, max=1.0, help="labels.h5 pixels less confident than this are ignored."),
     confidence_weight: bool = typer.Option(True, "--confidence-weight/--no-confidence-weight", help="Weigh each pixel by its labels.h5 confidence."),
     expert_weight: float = typer.Option(1.0, "--expert-weight", min=0.0, help="Weight of the pixels of expert-annotated frames."),
+    class_weights: Optional[str] = typer.Option(None, "--class-weights", help="Per-class weights id:weight, e.g. 0:0.1,5:2 (others 1)."),
     dice_weight: float = typer.Option(1.0, "--dice-weight", min=0.0, help="Weight of the soft Dice term beside cross-entropy."),
     only_annotated: bool = typer.Option(False, "--only-annotated", help="From labels.h5, train on the expert-annotated frames only."),
     val_captures: Optional[str] = typer.Option(
@@ -214,7 +215,7 @@ def train(
     cfg = TrainConfig(
         arch=arch, encoder=encoder, steps=steps, batch_size=batch_size, crop=crop, lr=lr,
         min_confidence=min_confidence, confidence_weight=confidence_weight, expert_weight=expert_weight,
-        dice_weight=dice_weight, only_annotated=only_annotated,
+        class_weights=class_weights, dice_weight=dice_weight, only_annotated=only_annotated,
         val_captures=[v for v in (val_captures or "").split(",") if v], eval_every=eval_every,
         device=device, seed=seed, workers=workers,
     )

@@ -234,12 +234,12 @@ def normalize_image(image: np.ndarray) -> torch.Tensor:
 
 def make_target(mask: np.ndarray, confidence: np.ndarray, annotated: bool, lut: np.ndarray, *,
                 min_confidence: float = 0.0, expert_weight: float = 1.0,
-                confidence_weight: bool = True) -> tuple[np.ndarray, np.ndarray]:
+                confidence_weight: bool = True, class_weight: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Class ids -> model indices (uint8, 255 = ignore) and per-pixel weights (float32).
 
     Pixels with confidence below ``min_confidence`` become ignore; the weight is the
-    confidence (``confidence_weight``) times ``expert_weight`` on annotated frames; ignored
-    pixels weigh 0.
+    confidence (``confidence_weight``) times ``expert_weight`` on annotated frames times the
+    class's weight (``class_weight``, by model index); ignored pixels weigh 0.
     """
     index = lut[mask]
     target = np.where(index < 0, IGNORE_ID, index).astype(np.uint8)
@@ -249,6 +249,8 @@ def make_target(mask: np.ndarray, confidence: np.ndarray, annotated: bool, lut: 
     weight = conf.copy() if confidence_weight else np.ones_like(conf)
     if annotated:
         weight *= float(expert_weight)
+    if class_weight is not None:  # (K,) per model index
+        weight *= class_weight[np.minimum(target, len(class_weight) - 1)]
     weight[target == IGNORE_ID] = 0.0
     return target, weight
 
@@ -257,11 +259,13 @@ class FrameDataset(torch.utils.data.Dataset):
     """Training items: normalised image (3,h,w), target indices (h,w) long, weights (h,w)."""
 
     def __init__(self, frames: list[Frame], classes: ClassMap, transform=None, *, min_confidence: float = 0.0,
-                 expert_weight: float = 1.0, confidence_weight: bool = True) -> None:
+                 expert_weight: float = 1.0, confidence_weight: bool = True,
+                 class_weight: np.ndarray | None = None) -> None:
         self.frames = frames
         self.lut = classes.id_to_index_lut()
         self.transform = transform
-        self.kw = dict(min_confidence=min_confidence, expert_weight=expert_weight, confidence_weight=confidence_weight)
+        self.kw = dict(min_confidence=min_confidence, expert_weight=expert_weight, confidence_weight=confidence_weight,
+                       class_weight=class_weight)
 
     def __len__(self) -> int:
         return len(self.frames)
@@ -279,3 +283,32 @@ class FrameDataset(torch.utils.data.Dataset):
             "target": torch.from_numpy(np.ascontiguousarray(target)).long(),
             "weight": torch.from_numpy(np.ascontiguousarray(weight, dtype=np.float32)),
         }
+
+
+def parse_class_weights(text: str | dict | None, classes: ClassMap) -> np.ndarray | None:
+    """``"0:0.1,5:2"`` (class id: weight; unnamed classes weigh 1) -> (K,) weights by model index."""
+    if text is None or text == "" or text == {}:
+        return None
+    if isinstance(text, dict):
+        pairs = [(int(k), float(v)) for k, v in text.items()]
+    else:
+        pairs = []
+        for item in text.replace(" ", "").split(","):
+            if not item:
+                continue
+            cid, sep, w = item.partition(":")
+            try:
+                if not sep:
+                    raise ValueError
+                pairs.append((int(cid), float(w)))
+            except ValueError:
+                raise TrainError(f"--class-weights {text!r}: expected id:weight pairs, e.g. 0:0.1,5:2") from None
+    out = np.ones(classes.num_classes, dtype=np.float32)
+    lut = classes.id_to_index_lut()
+    for cid, w in pairs:
+        if not 0 <= cid < 256 or lut[cid] < 0:
+            raise TrainError(f"--class-weights: class id {cid} is not in the class table ({', '.join(map(str, classes.ids))})")
+        if not (w >= 0 and np.isfinite(w)):
+            raise TrainError(f"--class-weights: weight {w} of class {cid} must be a finite number >= 0")
+        out[lut[cid]] = w
+    return out

@@ -27,7 +27,8 @@ from ..classes import IGNORE_ID, ClassMap
 from ..device import pick_device
 from ..outdir import partial_path, write_text_atomic
 from ..progress import console, make_progress
-from .data import FrameDataset, Split, TrainError, load_sources, make_target, normalize_image, split_by_capture
+from .data import (FrameDataset, Split, TrainError, load_sources, make_target, normalize_image,
+                   parse_class_weights, split_by_capture)
 from .loss import confusion_counts, segmentation_loss, upsample
 from .model import build_model, input_multiple, resolve_encoder
 
@@ -51,6 +52,7 @@ class TrainConfig:
     min_confidence: float = 0.0
     confidence_weight: bool = True
     expert_weight: float = 1.0
+    class_weights: str | None = None  # "id:weight,..." (unnamed classes weigh 1)
     only_annotated: bool = False
     val_captures: list[str] = field(default_factory=list)
     eval_every: int | None = None  # None: steps // 10
@@ -189,7 +191,8 @@ def evaluate(model, split: Split, classes: ClassMap, cfg: TrainConfig, multiple:
     losses = []
     for fr in split.val:
         target, weight = make_target(fr.mask, fr.confidence, fr.annotated, lut, min_confidence=cfg.min_confidence,
-                                     expert_weight=cfg.expert_weight, confidence_weight=cfg.confidence_weight)
+                                     expert_weight=cfg.expert_weight, confidence_weight=cfg.confidence_weight,
+                                     class_weight=parse_class_weights(cfg.class_weights, classes))
         logits = _forward_full(model, fr.image, multiple, device)[None]
         t = torch.from_numpy(target).long()[None].to(device)
         loss, _ = segmentation_loss(logits, t, torch.from_numpy(weight)[None].to(device), dice_weight=cfg.dice_weight)
@@ -267,6 +270,7 @@ def train(sources: list[str | Path], out: str | Path, cfg: TrainConfig | None = 
     loaded, classes = load_sources(list(sources), cfg.only_annotated)
     if state is not None and state["classes"].to_json() != classes.to_json():
         raise TrainError(f"{out / 'checkpoint.pt'}: its class table differs from the sources' ({loaded[0].path})")
+    class_weight = parse_class_weights(cfg.class_weights, classes)
     split = split_by_capture(loaded, cfg.val_captures)
     if not split.train:
         raise TrainError("no training frames are left after the validation split")
@@ -295,7 +299,7 @@ def train(sources: list[str | Path], out: str | Path, cfg: TrainConfig | None = 
 
     dataset = FrameDataset(split.train, classes, build_augment(cfg.crop, seed=cfg.seed + step),
                            min_confidence=cfg.min_confidence, expert_weight=cfg.expert_weight,
-                           confidence_weight=cfg.confidence_weight)
+                           confidence_weight=cfg.confidence_weight, class_weight=class_weight)
     generator = torch.Generator().manual_seed(cfg.seed + step)
     loader = torch.utils.data.DataLoader(dataset, batch_size=min(cfg.batch_size, len(dataset)), shuffle=True,
                                          drop_last=True, num_workers=cfg.workers, generator=generator)
