@@ -7,6 +7,7 @@ table (background + object) turns labelsynth into a foreground-mask tool.
 from __future__ import annotations
 
 import json
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -201,3 +202,24 @@ def _color(value: object, class_id: int) -> tuple[int, int, int]:
 def _fallback_color(class_id: int) -> tuple[int, int, int]:
     rng = np.random.default_rng(class_id + 7)
     return tuple(int(v) for v in rng.integers(40, 255, size=3))
+
+
+def parse_id_pairs(text: str | Mapping, value: Callable[[str], object], option: str, shape: str, example: str,
+                   error: type[Exception]) -> list[tuple[int, object]]:
+    """``"a:b,c:d"`` (or a mapping) -> [(a, value(b)), ...]: the command-line form of per-class
+    values (``segment --id-map``, ``train --class-weights``); a malformed item raises ``error``
+    with one line naming the option."""
+    if isinstance(text, Mapping):
+        return [(int(k), value(v)) for k, v in text.items()]
+    pairs = []
+    for item in text.replace(" ", "").split(","):
+        if not item:
+            continue
+        key, sep, val = item.partition(":")
+        try:
+            if not sep:
+                raise ValueError
+            pairs.append((int(key), value(val)))
+        except ValueError:
+            raise error(f"{option} {text!r}: expected {shape} pairs, e.g. {example}") from None
+    return pairs

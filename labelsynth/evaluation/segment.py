@@ -32,7 +32,7 @@ import numpy as np
 from ..capture.images import list_images, read_image
 from ..capture.load import capture_white_background
 from ..capture.masks import write_mask
-from ..classes import IGNORE_ID, ClassMap
+from ..classes import IGNORE_ID, ClassMap, parse_id_pairs
 from ..errors import LabelsynthError
 from ..outdir import building
 from ..progress import make_progress
@@ -77,20 +77,7 @@ def parse_id_map(text: str | Mapping[int, int] | None) -> dict[int, int] | None:
     """
     if text is None:
         return None
-    if isinstance(text, Mapping):
-        pairs = [(int(k), int(v)) for k, v in text.items()]
-    else:
-        pairs = []
-        for item in text.replace(" ", "").split(","):
-            if not item:
-                continue
-            src, sep, dst = item.partition(":")
-            try:
-                if not sep:
-                    raise ValueError
-                pairs.append((int(src), int(dst)))
-            except ValueError:
-                raise SegmentError(f"--id-map {text!r}: expected source:target pairs, e.g. 0:0,1:1,2:3") from None
+    pairs = parse_id_pairs(text, int, "--id-map", "source:target", "0:0,1:1,2:3", SegmentError)
     result: dict[int, int] = {}
     for src, dst in pairs:
         if src < 0:

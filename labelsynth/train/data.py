@@ -16,7 +16,7 @@ import h5py
 import numpy as np
 import torch
 
-from ..classes import IGNORE_ID, ClassMap
+from ..classes import IGNORE_ID, ClassMap, parse_id_pairs
 from ..errors import LabelsynthError
 
 LABELS_DATASETS = ("images", "masks", "confidence", "annotated", "frame_names")
@@ -289,20 +289,7 @@ def parse_class_weights(text: str | dict | None, classes: ClassMap) -> np.ndarra
     """``"0:0.1,5:2"`` (class id: weight; unnamed classes weigh 1) -> (K,) weights by model index."""
     if text is None or text == "" or text == {}:
         return None
-    if isinstance(text, dict):
-        pairs = [(int(k), float(v)) for k, v in text.items()]
-    else:
-        pairs = []
-        for item in text.replace(" ", "").split(","):
-            if not item:
-                continue
-            cid, sep, w = item.partition(":")
-            try:
-                if not sep:
-                    raise ValueError
-                pairs.append((int(cid), float(w)))
-            except ValueError:
-                raise TrainError(f"--class-weights {text!r}: expected id:weight pairs, e.g. 0:0.1,5:2") from None
+    pairs = parse_id_pairs(text, float, "--class-weights", "id:weight", "0:0.1,5:2", TrainError)
     out = np.ones(classes.num_classes, dtype=np.float32)
     lut = classes.id_to_index_lut()
     for cid, w in pairs:
