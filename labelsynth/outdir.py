@@ -82,16 +82,24 @@ def building(out: str | Path, *, force: bool = False, merge: bool = False) -> It
         raise
 
 
-def write_text_atomic(path: str | Path, text: str) -> Path:
-    """Write a text file through ``partial_path(path)`` and rename it, so that readers never see
-    half a file; the parent folder is created."""
+@contextmanager
+def atomic_file(path: str | Path) -> Iterator[Path]:
+    """Yield ``partial_path(path)`` to write one file into; it becomes ``path`` when the block
+    ends normally and is removed on any exception, so readers never see half a file."""
     path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
     tmp = partial_path(path)
     try:
-        tmp.write_text(text, encoding="utf-8")
+        yield tmp
         os.replace(tmp, path)
     except BaseException:
         tmp.unlink(missing_ok=True)
         raise
+
+
+def write_text_atomic(path: str | Path, text: str) -> Path:
+    """Write a text file through ``partial_path(path)`` and rename it; the parent folder is created."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    with atomic_file(path) as tmp:
+        tmp.write_text(text, encoding="utf-8")
     return path

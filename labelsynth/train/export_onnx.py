@@ -12,14 +12,13 @@ from __future__ import annotations
 
 import copy
 import json
-import os
 import warnings
 from pathlib import Path
 
 import torch
 
 from ..classes import ClassMap
-from ..outdir import partial_path
+from ..outdir import atomic_file
 
 META_CLASSES = "labelsynth_classes"
 META_ID_MAP = "labelsynth_id_map"
@@ -32,11 +31,10 @@ def export_onnx(model: torch.nn.Module, path: str | Path, classes: ClassMap, inp
     import onnx
 
     path = Path(path)
-    tmp = partial_path(path)
     net = copy.deepcopy(model).to("cpu").eval()
     w, h = input_size
     dummy = torch.zeros(1, 3, h, w)
-    try:
+    with atomic_file(path) as tmp:
         with warnings.catch_warnings(), torch.no_grad():
             warnings.simplefilter("ignore")
             torch.onnx.export(
@@ -55,8 +53,4 @@ def export_onnx(model: torch.nn.Module, path: str | Path, classes: ClassMap, inp
             entry = proto.metadata_props.add()
             entry.key, entry.value = key, value
         onnx.save(proto, str(tmp))
-        os.replace(tmp, path)
-    except BaseException:
-        tmp.unlink(missing_ok=True)
-        raise
     return path

@@ -11,7 +11,6 @@ from __future__ import annotations
 
 import json
 import math
-import os
 import time
 from collections import Counter
 from dataclasses import asdict, dataclass, field
@@ -25,7 +24,7 @@ import torch.nn.functional as F
 from .. import __version__
 from ..classes import IGNORE_ID, ClassMap
 from ..device import pick_device
-from ..outdir import partial_path, write_text_atomic
+from ..outdir import atomic_file, write_text_atomic
 from ..progress import console, make_progress
 from .data import (FrameDataset, Split, TrainError, load_sources, make_target, normalize_image,
                    parse_class_weights, split_by_capture)
@@ -124,7 +123,6 @@ def prepare_out(out: Path, sources: list[str | Path], *, force: bool, resume: bo
 
 def save_checkpoint(path: Path, model, optimizer, step: int, config: TrainConfig, classes: ClassMap,
                     history: list[dict[str, Any]]) -> None:
-    tmp = partial_path(path)
     state = {
         "model": {k: v.detach().cpu() for k, v in model.state_dict().items()},
         "optimizer": optimizer.state_dict(),
@@ -134,12 +132,8 @@ def save_checkpoint(path: Path, model, optimizer, step: int, config: TrainConfig
         "history": json.dumps(history),
         "labelsynth_version": __version__,
     }
-    try:
+    with atomic_file(path) as tmp:
         torch.save(state, tmp)
-        os.replace(tmp, path)
-    except BaseException:
-        tmp.unlink(missing_ok=True)
-        raise
 
 
 def load_checkpoint(path: Path) -> dict[str, Any]:
@@ -189,10 +183,11 @@ def evaluate(model, split: Split, classes: ClassMap, cfg: TrainConfig, multiple:
     lut = classes.id_to_index_lut()
     counts = torch.zeros(3, classes.num_classes, dtype=torch.long)
     losses = []
+    class_weight = parse_class_weights(cfg.class_weights, classes)
     for fr in split.val:
         target, weight = make_target(fr.mask, fr.confidence, fr.annotated, lut, min_confidence=cfg.min_confidence,
                                      expert_weight=cfg.expert_weight, confidence_weight=cfg.confidence_weight,
-                                     class_weight=parse_class_weights(cfg.class_weights, classes))
+                                     class_weight=class_weight)
         logits = _forward_full(model, fr.image, multiple, device)[None]
         t = torch.from_numpy(target).long()[None].to(device)
         loss, _ = segmentation_loss(logits, t, torch.from_numpy(weight)[None].to(device), dice_weight=cfg.dice_weight)
@@ -238,13 +233,11 @@ def write_curves(path: Path, history: list[dict[str, Any]], class_names: list[st
     if ax_dice.lines:
         ax_dice.legend(fontsize=7)
     fig.tight_layout()
-    tmp = partial_path(path)
     try:
-        fig.savefig(tmp, format="png", dpi=100)
-        os.replace(tmp, path)
+        with atomic_file(path) as tmp:
+            fig.savefig(tmp, format="png", dpi=100)
     finally:
         plt.close(fig)
-        tmp.unlink(missing_ok=True)
 
 
 def _infinite(loader):
