@@ -125,6 +125,41 @@ def expand(
 
 @app.command()
 @friendly_errors
+def batch(
+    source: Path = typer.Argument(..., metavar="CAPTURE_ROOT_OR_LIST", help="A folder searched for captures, or a text file of capture paths (one a line)."),
+    out: Path = typer.Option(..., "--out", help="Batch folder: captures/<name>/, dataset.h5, batch.json, batch.html."),
+    labels: Optional[str] = typer.Option(None, help="annotations | predictions | both (default: per capture, both when both exist)."),
+    recipe: str = typer.Option("default", help="Recipe name (default, fast, quality, paper) or a YAML path."),
+    device: str = typer.Option("auto", help="auto | cpu | cuda (auto: cuda only with --gpus-per-capture)."),
+    seed: int = typer.Option(0, help="Random seed."),
+    set_: list[str] = typer.Option([], "--set", help="Override a recipe value, e.g. --set geometry.iterations=500"),
+    annotated_frames: Optional[str] = typer.Option(None, "--annotated-frames", help="As for expand, applied to every capture."),
+    report: bool = typer.Option(True, "--report/--no-report", help="Write each capture's consistency report and mesh."),
+    mesh_format: str = typer.Option("ply", "--mesh-format", help="ply | glb"),
+    mm_per_unit: Optional[float] = typer.Option(None, "--mm-per-unit", min=0.0, help="Millimetres per scene unit."),
+    address: Optional[str] = typer.Option(None, "--address", help="Ray cluster to attach to (default: RAY_ADDRESS, else a local instance)."),
+    cpus_per_capture: Optional[int] = typer.Option(None, "--cpus-per-capture", min=1, help="CPUs (and threads) per capture (default: 4, at most a node's)."),
+    gpus_per_capture: float = typer.Option(0.0, "--gpus-per-capture", min=0.0, help="GPUs per capture; only on a cluster with GPUs."),
+    retries: int = typer.Option(2, "--retries", min=0, help="Retries of a capture whose worker died (user errors are not retried)."),
+    force: bool = typer.Option(False, help="Redo captures that are finished and unchanged."),
+) -> None:
+    """Expand many captures as Ray tasks: resumable, one table of outcomes, one merged dataset.h5."""
+    from rich.console import Console
+
+    from .batch import ExpandOptions, rich_table, run_batch
+
+    opts = ExpandOptions(labels=labels, recipe=recipe, device=device, seed=seed, overrides=set_,
+                         annotated_frames=annotated_frames, report=report, mesh_format=mesh_format,
+                         mm_per_unit=mm_per_unit)
+    result = run_batch(source, out, opts, address=address, cpus_per_capture=cpus_per_capture,
+                       gpus_per_capture=gpus_per_capture, retries=retries, force=force)
+    Console(width=None if sys.stdout.isatty() else 200).print(rich_table(result.rows))  # no folded reasons in logs
+    typer.echo(result.summary())
+    if not result.ok:
+        raise typer.Exit(code=1)
+
+@app.command()
+@friendly_errors
 def report(
     out: Path = typer.Argument(..., help="Output folder of labelsynth expand (field.pt, run.json, masks/)."),
     device: str = typer.Option("auto", help="auto | cpu | cuda"),

@@ -395,6 +395,20 @@ def read_labels_h5(path: str | Path) -> dict[str, Any]:
         }
 
 
+def missing_virtual_sources(path: Path, f: h5py.File) -> list[Path]:
+    """Source files of the per-frame virtual datasets that do not exist (HDF5 would read their
+    frames as fill values without a word). Relative sources are relative to ``path``'s folder."""
+    missing: list[Path] = []
+    for key in ("images", "masks", "confidence"):
+        if key in f and f[key].is_virtual:
+            for m in f[key].virtual_sources():
+                src = Path(m.file_name)
+                src = src if src.is_absolute() or m.file_name == "." else Path(path).parent / src
+                if m.file_name != "." and not src.is_file() and src not in missing:
+                    missing.append(src)
+    return missing
+
+
 class LabelsDataset(torch.utils.data.Dataset):
     """One frame of labels.h5 per item, for training a 2D segmenter.
 
@@ -402,7 +416,7 @@ class LabelsDataset(torch.utils.data.Dataset):
     process reads, reopened after a fork (h5py handles must not cross processes), and never
     pickled. Items: ``image`` float32 (3,H,W) in [0,1] (uint8 with ``uint8=True``), ``mask``
     int64 (H,W) class ids (255 = ignore), ``confidence`` float32 (H,W), ``annotated`` bool
-    tensor, ``name`` str, ``index`` int.
+    tensor, ``name`` str, ``index`` int (and ``capture`` str from a batch's merged dataset.h5).
 
     ``transform`` is called as ``transform(image=HxWx3 uint8, mask=HxW uint8)`` and must
     return a dict with ``image`` and ``mask`` (albumentations style, numpy or tensors).
@@ -430,6 +444,14 @@ class LabelsDataset(torch.utils.data.Dataset):
             self.height, self.width = (int(v) for v in f["masks"].shape[1:])
             self.attrs = _attrs_dict(f.attrs)
             self.frame_names = [str(s) for s in f["frame_names"].asstr()[()]]
+            # A merged dataset.h5 (``labelsynth batch``): frames name their capture, are read
+            # through virtual datasets from each capture's labels.h5, and are cropped to their size.
+            self.capture_names = [str(s) for s in f["capture"].asstr()[()]] if "capture" in f else None
+            self._sizes = f["frame_sizes"][()] if "frame_sizes" in f else None
+            missing = missing_virtual_sources(self.path, f)
+            if missing:
+                raise ExportError(f"{self.path}: reads its frames from {missing[0]}, which is missing "
+                                  f"({len(missing)} source file(s) missing; the rest would read as fill values)")
         self._classes = classes_from_attrs(self.attrs)
 
     @property
@@ -473,6 +495,9 @@ class LabelsDataset(torch.utils.data.Dataset):
         image = f["images"][i]
         mask = f["masks"][i]
         conf = f["confidence"][i].astype(np.float32)
+        if self._sizes is not None:
+            h, w = (int(v) for v in self._sizes[i])
+            image, mask, conf = image[:h, :w], mask[:h, :w], conf[:h, :w]
         if self.transform is not None:
             kwargs: dict[str, Any] = {"image": image, "mask": mask}
             wants_conf = "confidence" in (getattr(self.transform, "additional_targets", None) or {})
@@ -494,6 +519,7 @@ class LabelsDataset(torch.utils.data.Dataset):
             "annotated": torch.tensor(bool(f["annotated"][i])),
             "name": self.frame_names[i],
             "index": i,
+            **({"capture": self.capture_names[i]} if self.capture_names is not None else {}),
         }
 
     def _image_tensor(self, image: Any) -> torch.Tensor:
