@@ -58,7 +58,7 @@ def find_captures(root: Path, exclude: Path | None = None) -> list[Path]:
             else:
                 keep.append(d)
         dirnames[:] = keep
-    return found
+    return sorted(found)
 
 
 def read_capture_list(list_file: Path) -> list[Path]:

@@ -120,7 +120,7 @@ def expand_capture(capture: str, output: str, out_root: str, name: str, kwargs: 
     return {"status": "done", "seconds": time.time() - t0, "frames": len(result.frames), "pid": os.getpid()}
 
 
-def _connect(address: str | None, progress: bool):
+def _connect(address: str | None):
     """(ray, started_here): attach to ``address`` / RAY_ADDRESS, reuse an initialised Ray, or
     start a local one sized to this machine."""
     import logging
@@ -138,10 +138,16 @@ def _connect(address: str | None, progress: bool):
         if address:
             ray.init(address=address, **common)
         else:
-            ray.init(num_cpus=os.cpu_count() or 1, **common)
+            # "local": always a new instance (a bare ray.init() would join any `ray start` on this machine)
+            ray.init(address="local", num_cpus=os.cpu_count() or 1, **common)
     except (ConnectionError, RuntimeError, ValueError) as exc:
         where = f"the Ray cluster at {address}" if address else "a local Ray instance"
-        raise BatchError(f"cannot start or attach to {where}: {one_line(exc)}") from None
+        hint = ""
+        if address and not os.environ.get("RAY_AUTH_MODE"):
+            # Ray sends its token to an explicitly named cluster only when asked to.
+            hint = (" (a cluster with token authentication, Ray's default, also needs RAY_AUTH_MODE=token and its "
+                    "token in ~/.ray/auth_token or RAY_AUTH_TOKEN)")
+        raise BatchError(f"cannot start or attach to {where}: {one_line(exc)}{hint}") from None
     return ray, True
 
 
@@ -268,7 +274,7 @@ def run_batch(
 def _run_tasks(todo: list[tuple[CaptureJob, Marker]], out: Path, options: ExpandOptions, rows: dict[str, BatchRow],
                bar, task, *, address: str | None, cpus: int | None, gpus: float, retries: int) -> str:
     """Submit one task per capture, fill ``rows`` as they land; returns the cluster's address."""
-    ray, started = _connect(address, progress=True)
+    ray, started = _connect(address)
     try:
         node_cpus, node_gpus = _largest_node(ray)
         ncpu = check_resources(cpus, gpus, node_cpus, node_gpus)

@@ -1,0 +1,192 @@
+"""labelsynth batch without Ray: discovery, names, markers, resources, the table and dataset.h5."""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from labelsynth.batch.discover import BatchError, discover, find_captures, read_capture_list
+from labelsynth.batch.marker import is_done, make_marker, output_complete, write_marker
+from labelsynth.batch.merge import merge_labels
+from labelsynth.batch.run import check_resources, one_line
+from labelsynth.batch.table import BatchRow, write_batch_html, write_batch_json
+from labelsynth.classes import ClassMap
+from labelsynth.errors import CheckError
+from labelsynth.export import LabelsDataset, write_labels_h5
+
+
+def _capture(folder: Path, pose: str = "transforms.json") -> Path:
+    folder.mkdir(parents=True)
+    if pose == "sparse/0":
+        (folder / "sparse" / "0").mkdir(parents=True)
+    else:
+        (folder / pose).write_text("{}")
+    (folder / "images").mkdir()
+    (folder / "images" / "a.png").write_bytes(b"x" * 10)
+    return folder
+
+
+def test_import_labelsynth_does_not_import_ray():
+    code = ("import sys, labelsynth, labelsynth.cli, labelsynth.batch; "
+            "sys.exit(1 if 'ray' in sys.modules else 0)")
+    assert subprocess.run([sys.executable, "-c", code]).returncode == 0
+
+
+def test_discover_finds_captures_but_not_inside_them_nor_out(tmp_path):
+    root = tmp_path / "root"
+    _capture(root / "p1" / "wound")
+    _capture(root / "p2" / "wound", "sparse/0")
+    _capture(root / "p3", "cameras_sphere.npz")
+    _capture(root / "p3" / "nested")  # inside a capture: not searched
+    _capture(root / "out" / "captures" / "old")  # the batch's own OUT
+    (root / "empty").mkdir()
+    (root / ".hidden").mkdir()
+    _capture(root / ".hidden" / "c")
+    assert [p.relative_to(root).as_posix() for p in find_captures(root, exclude=root / "out")] == \
+        ["p1/wound", "p2/wound", "p3"]
+    jobs = discover(root, root / "out")
+    assert [j.name for j in jobs] == ["p1__wound", "p2__wound", "p3"]  # same folder name: the path decides
+    assert [j.name for j in discover(root / "p3")] == ["p3"]  # a capture is its own root
+
+
+def test_capture_list_file(tmp_path):
+    a = _capture(tmp_path / "a")
+    _capture(tmp_path / "sub" / "b")
+    lst = tmp_path / "list.txt"
+    lst.write_text(f"# my captures\n{a}\n\nsub/b   # relative to the list\n")
+    assert [j.name for j in discover(lst)] == ["a", "b"]
+    lst.write_text("a\nnope\n")
+    with pytest.raises(BatchError, match=r"list.txt:2: nope: no such capture folder"):
+        read_capture_list(lst)
+    (tmp_path / "plain").mkdir()
+    lst.write_text("plain\n")
+    with pytest.raises(BatchError, match=r"list.txt:1: plain: not a capture"):
+        read_capture_list(lst)
+    lst.write_text("a\n./a\n")
+    with pytest.raises(BatchError, match="listed twice"):
+        discover(lst)
+    lst.write_text("# nothing\n")
+    with pytest.raises(BatchError, match="lists no captures"):
+        discover(lst)
+    with pytest.raises(BatchError, match="no capture folders found"):
+        discover(tmp_path / "plain")
+    with pytest.raises(BatchError, match="no such folder or capture list"):
+        discover(tmp_path / "missing")
+
+
+def test_marker_key_follows_inputs_recipe_and_options(tmp_path):
+    cap = _capture(tmp_path / "c")
+    recipe = {"name": "fast", "geometry": {"iterations": 500}}
+    opts = {"labels": None, "seed": 0}
+    base = make_marker(cap, recipe, opts).key
+    assert make_marker(cap, recipe, opts).key == base  # deterministic
+    assert make_marker(cap, {**recipe, "geometry": {"iterations": 501}}, opts).key != base
+    assert make_marker(cap, recipe, {**opts, "seed": 1}).key != base
+    img = cap / "images" / "a.png"
+    img.write_bytes(b"y" * 10)  # same size, new content and mtime
+    st = img.stat()
+    os.utime(img, ns=(st.st_atime_ns, st.st_mtime_ns + 1_000_000))
+    changed = make_marker(cap, recipe, opts).key
+    assert changed != base
+    (cap / "images" / "b.png").write_bytes(b"z")  # a new frame
+    assert make_marker(cap, recipe, opts).key not in (base, changed)
+
+
+def test_is_done_needs_the_marker_and_a_complete_output(tmp_path):
+    cap = _capture(tmp_path / "c")
+    out, output = tmp_path / "out", tmp_path / "out" / "captures" / "c"
+    marker = make_marker(cap, {"name": "fast"}, {})
+    for f in ("run.json", "labels.h5", "field.pt"):
+        (output / "masks").mkdir(parents=True, exist_ok=True)
+        (output / f).write_text("x")
+    assert output_complete(output, report=False) and not output_complete(output, report=True)
+    assert not is_done(out, "c", marker, output, report=False)  # no marker yet
+    write_marker(out, "c", marker)
+    assert is_done(out, "c", marker, output, report=False)
+    assert not is_done(out, "c", make_marker(cap, {"name": "default"}, {}), output, report=False)
+    (output / "labels.h5").unlink()  # removed by hand
+    assert not is_done(out, "c", marker, output, report=False)
+
+
+def test_resource_requests_that_no_node_meets_are_clear_errors():
+    assert check_resources(None, 0, 2, 0) == 2  # default 4, capped to the node
+    assert check_resources(None, 0, 16, 0) == 4
+    assert check_resources(3, 1, 8, 1) == 3
+    with pytest.raises(BatchError, match="the Ray cluster has no GPUs"):
+        check_resources(1, 1, 8, 0)
+    with pytest.raises(BatchError, match="no node has that many GPUs"):
+        check_resources(1, 2, 8, 1)
+    with pytest.raises(BatchError, match="no node has that many CPUs"):
+        check_resources(9, 0, 8, 0)
+
+
+def test_one_line_reasons():
+    err = CheckError(["a.png: truncated", "b.png: bad id 9"], "2 problems in C")
+    assert one_line(err) == "a.png: truncated (and 1 more problem)"
+    assert one_line(ValueError("first\nsecond")) == "first"
+
+
+def test_table_files_are_self_contained(tmp_path):
+    rows = [BatchRow("a", "/c/a", "done", seconds=12.3, wound_bed_agreement=0.97, flagged=["f1"]),
+            BatchRow("b<x>", "/c/b", "failed", reason="b.png: cannot read image (file is truncated)")]
+    write_batch_json(tmp_path, rows, {"recipe": "fast"})
+    doc = json.loads((tmp_path / "batch.json").read_text())
+    assert doc["counts"] == {"done": 1, "skipped": 0, "failed": 1}
+    assert doc["captures"][1]["reason"].endswith("(file is truncated)")
+    write_batch_html(tmp_path, rows, {})
+    html = (tmp_path / "batch.html").read_text()
+    assert "b&lt;x&gt;" in html and "file is truncated" in html and "0.970" in html
+    for outside in ("<script", "<link", "src=", "http://", "https://"):
+        assert outside not in html
+
+
+def _labels(path: Path, n: int, h: int, w: int, seed: int, classes: ClassMap) -> dict:
+    rng = np.random.default_rng(seed)
+    data = {"images": rng.integers(0, 255, (n, h, w, 3), dtype=np.uint8),
+            "masks": rng.integers(0, 3, (n, h, w), dtype=np.uint8),
+            "confidence": rng.random((n, h, w)).astype(np.float16),
+            "names": [f"frame_{i:03d}" for i in range(n)], "annotated": [i == 0 for i in range(n)]}
+    write_labels_h5(path, images=data["images"], masks=data["masks"], confidence=data["confidence"],
+                    frame_names=data["names"], annotated=data["annotated"], classes=classes)
+    return data
+
+
+def test_merged_dataset_of_captures_of_two_sizes(tmp_path):
+    classes = ClassMap.default()
+    out = tmp_path / "out"
+    a = _labels(out / "captures" / "a" / "labels.h5", 3, 12, 16, 0, classes)
+    b = _labels(out / "captures" / "b" / "labels.h5", 2, 20, 10, 1, classes)
+    path = merge_labels(out, [("a", out / "captures" / "a" / "labels.h5"), ("b", out / "captures" / "b" / "labels.h5")])
+    moved = tmp_path / "elsewhere"
+    shutil.move(str(out), moved)  # relative sources: OUT moves as a whole
+    ds = LabelsDataset(moved / path.name, uint8=True)
+    assert len(ds) == 5 and ds.classes.to_json() == classes.to_json()
+    expected = [("a", a, i) for i in range(3)] + [("b", b, i) for i in range(2)]
+    for k, (cap, data, i) in enumerate(expected):
+        item = ds[k]
+        assert item["capture"] == cap and item["name"] == data["names"][i]
+        assert np.array_equal(item["image"].permute(1, 2, 0).numpy(), data["images"][i])  # cropped back
+        assert np.array_equal(item["mask"].numpy(), data["masks"][i])
+        assert np.allclose(item["confidence"].numpy(), data["confidence"][i].astype(np.float32))
+        assert bool(item["annotated"]) == data["annotated"][i]
+    (moved / "captures" / "b" / "labels.h5").unlink()
+    with pytest.raises(Exception, match="which is missing"):
+        LabelsDataset(moved / path.name)
+
+
+def test_merge_refuses_different_class_tables(tmp_path):
+    out = tmp_path / "out"
+    _labels(out / "captures" / "a" / "labels.h5", 1, 8, 8, 0, ClassMap.default())
+    other = ClassMap.from_dict({"classes": [{"id": 0, "name": "background"}, {"id": 1, "name": "skin"},
+                                            {"id": 2, "name": "bed", "wound_bed": True}]}, "test")
+    _labels(out / "captures" / "b" / "labels.h5", 1, 8, 8, 0, other)
+    with pytest.raises(BatchError, match="class table differs"):
+        merge_labels(out, [("a", out / "captures" / "a" / "labels.h5"), ("b", out / "captures" / "b" / "labels.h5")])
+    assert not (out / "dataset.h5").exists() and not (out / "dataset.h5.partial").exists()
