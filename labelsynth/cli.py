@@ -123,6 +123,7 @@ def expand(
     typer.echo(result.summary())
 
 
+
 @app.command()
 @friendly_errors
 def batch(
@@ -220,8 +221,9 @@ def segment(
 def train(
     sources: list[Path] = typer.Argument(..., metavar="SOURCE", help="labels.h5 files written by expand and/or capture folders (their annotations/)."),
     out: Path = typer.Option(..., "--out", help="Model folder: model.onnx, checkpoint.pt, train.json, curves.png."),
-    arch: str = typer.Option("segformer", help="segformer (transformers, from a config) | unet | fpn (segmentation-models-pytorch)."),
+    arch: Optional[str] = typer.Option(None, help="segformer (transformers, from a config; the default) | unet | fpn (segmentation-models-pytorch); --resume keeps the checkpoint's."),
     encoder: Optional[str] = typer.Option(None, help="segformer: b0 | b1; unet/fpn: resnet18, mobilenet_v2, ... (default: b0 / resnet18)."),
+    input_size: Optional[str] = typer.Option(None, "--input-size", help="WxH every frame is resized to for training, and segment's input (default: the frames' size)."),
     steps: int = typer.Option(400, min=1, help="Optimiser steps (in all, counting those before --resume)."),
     batch_size: int = typer.Option(8, "--batch-size", min=1, help="Crops per step."),
     crop: int = typer.Option(256, min=16, help="Square training crop in pixels (smaller frames are padded with ignore)."),
@@ -248,13 +250,34 @@ def train(
     from .train import TrainConfig, train as run_train
 
     cfg = TrainConfig(
-        arch=arch, encoder=encoder, steps=steps, batch_size=batch_size, crop=crop, lr=lr,
+        arch=arch, encoder=encoder, input_size=input_size, steps=steps, batch_size=batch_size, crop=crop, lr=lr,
         min_confidence=min_confidence, confidence_weight=confidence_weight, expert_weight=expert_weight,
         class_weights=class_weights, dice_weight=dice_weight, only_annotated=only_annotated,
         val_captures=[v for v in (val_captures or "").split(",") if v], eval_every=eval_every,
         device=device, seed=seed, workers=workers,
     )
     result = run_train(sources, out, cfg, force=force, resume=resume)
+    typer.echo(result.summary())
+
+
+@app.command()
+@friendly_errors
+def augment(
+    out: Path = typer.Argument(..., help="A finished expand output (field.pt, run.json, labels.h5)."),
+    views: int = typer.Option(..., "--views", help="Number of novel views to add."),
+    seed: int = typer.Option(0, help="Random seed of the poses; the same seed gives the same views."),
+    spread: str = typer.Option("1", help="How far poses stray from the captured path: a factor on the default bounds "
+                               "(0 = the path itself), or key=value pairs: along, tilt (deg), distance, roll (deg), focal."),
+    method: str = typer.Option("blend", help="blend (colours of the real frames that see each point) | head (the field's colour head)."),
+    capture: Optional[Path] = typer.Option(None, help="The capture folder, if it moved since expand (default: the one in run.json)."),
+    device: str = typer.Option("auto", help="auto | cpu | cuda."),
+    force: bool = typer.Option(False, help="Replace OUT/augment if it exists."),
+) -> None:
+    """Add novel views (image, mask, validity) to an expand output: OUT/augment with augment.h5."""
+    from .novel import augment as run_augment
+
+    result = run_augment(out, views, seed=seed, spread=spread, method=method, device=device, capture=capture,
+                         force=force)
     typer.echo(result.summary())
 
 

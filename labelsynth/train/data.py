@@ -1,17 +1,22 @@
 """Sources -> frames: labels.h5 files written by ``expand`` and capture folders (their
 ``annotations/`` only), one class table for all, and the validation split by capture.
 
-Frames are held in memory as uint8 images, uint8 class-id masks and float16 confidence
-(150 frames at 640x480 are ~200 MB); ``train`` never writes into a source.
+A labels.h5 is streamed: its format, datasets and class table are checked up front, then each
+frame is read from the file when a batch needs it (h5py reads one chunk, i.e. one frame; every
+process opens its own handle, so DataLoader workers are safe), so memory does not grow with the
+number of frames. A capture's annotations are few by nature and are read once, into memory.
+``train`` never writes into a source.
 """
 
 from __future__ import annotations
 
 import json
+import os
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+import cv2
 import h5py
 import numpy as np
 import torch
@@ -27,18 +32,53 @@ class TrainError(LabelsynthError, ValueError):
     """A source, option or checkpoint that ``train`` cannot use (one line, names the file)."""
 
 
+class _H5Frames:
+    """Frame ``i`` of a labels.h5, read on demand through one handle per process."""
+
+    def __init__(self, path: Path) -> None:
+        self.path = path
+        self._file: h5py.File | None = None
+        self._pid: int | None = None
+
+    def __getstate__(self) -> dict[str, Any]:  # DataLoader workers open their own handle
+        return {"path": self.path, "_file": None, "_pid": None}
+
+    def __call__(self, i: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        if self._file is None or self._pid != os.getpid():
+            try:
+                self._file = h5py.File(self.path, "r")
+            except OSError as exc:
+                raise TrainError(f"{self.path}: no longer readable ({exc})") from None
+            self._pid = os.getpid()
+        f = self._file
+        try:
+            return f["images"][i], f["masks"][i], f["confidence"][i]
+        except (OSError, KeyError, ValueError) as exc:
+            raise TrainError(f"{self.path}: frame {i} cannot be read ({str(exc).splitlines()[0]})") from None
+
+
+class _InMemory:
+    """Frame ``i`` from arrays already read (a capture's annotated frames)."""
+
+    def __init__(self, images: list[np.ndarray], masks: list[np.ndarray]) -> None:
+        self.images, self.masks = images, masks
+
+    def __call__(self, i: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        return self.images[i], self.masks[i], np.ones(self.masks[i].shape, dtype=np.float16)
+
+
 @dataclass
 class Source:
-    """The frames of one labels.h5 or one capture folder."""
+    """The frames of one labels.h5 or one capture folder; ``read(i)`` gives frame i's pixels."""
 
     path: Path
     kind: str  # "labels" | "capture"
     classes: ClassMap
     names: list[str]
-    images: list[np.ndarray]  # (H,W,3) uint8 RGB
-    masks: list[np.ndarray]  # (H,W) uint8 class ids, 255 = ignore
-    confidence: list[np.ndarray]  # (H,W) float16 in [0,1]
     annotated: np.ndarray  # (N,) bool
+    sizes: list[tuple[int, int]]  # (W, H) of each frame
+    rows: list[int]  # frame i is row rows[i] of the reader
+    reader: Any = field(repr=False)  # row -> (image (H,W,3) uint8 RGB, mask (H,W) uint8 ids, confidence (H,W))
 
     @property
     def name(self) -> str:
@@ -47,20 +87,44 @@ class Source:
             return self.path.parent.name
         return self.path.stem if self.kind == "labels" else self.path.name
 
+    def read(self, i: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        return self.reader(self.rows[i])
+
     def __len__(self) -> int:
         return len(self.names)
 
 
+def resize_frame(image: np.ndarray, mask: np.ndarray, confidence: np.ndarray,
+                 size: tuple[int, int] | None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """To ``size`` (W, H): the image by area averaging (as a camera at that resolution would see
+    it), the mask and its confidence by nearest neighbour (class ids are never blended)."""
+    if size is None or (image.shape[1], image.shape[0]) == tuple(size):
+        return image, mask, confidence
+    w, h = size
+    up = w > image.shape[1]
+    image = cv2.resize(image, (w, h), interpolation=cv2.INTER_LINEAR if up else cv2.INTER_AREA)
+    mask = cv2.resize(mask, (w, h), interpolation=cv2.INTER_NEAREST)
+    confidence = cv2.resize(confidence.astype(np.float32), (w, h), interpolation=cv2.INTER_NEAREST)
+    return image, mask, confidence
+
+
 @dataclass
 class Frame:
-    """One training or validation frame (views into its source's arrays)."""
+    """One training or validation frame: where it comes from; its pixels are read by ``load``."""
 
-    image: np.ndarray
-    mask: np.ndarray
-    confidence: np.ndarray
+    src: Source = field(repr=False)
+    index: int
     annotated: bool
     source: str
     name: str
+
+    @property
+    def size(self) -> tuple[int, int]:
+        return self.src.sizes[self.index]
+
+    def load(self, size: tuple[int, int] | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(image, mask, confidence), resized to ``size`` (W, H) when given."""
+        return resize_frame(*self.src.read(self.index), size)
 
 
 @dataclass
@@ -77,7 +141,8 @@ def _str(v: Any) -> str:
 
 
 def load_labels_h5(path: Path, only_annotated: bool = False) -> Source:
-    """A labels.h5 written by ``expand``: checked for its format, version and datasets."""
+    """A labels.h5 written by ``expand``: its format, version, datasets and class table are
+    checked now; the frames are read when they are used."""
     from ..export.dataset import FORMAT, FORMAT_VERSION, classes_from_attrs
 
     try:
@@ -98,15 +163,20 @@ def load_labels_h5(path: Path, only_annotated: bool = False) -> Source:
             classes = classes_from_attrs(f.attrs)
         except (LabelsynthError, KeyError, ValueError) as exc:
             raise TrainError(f"{path}: unusable class table ({str(exc).splitlines()[0]})") from None
+        n = len(f["annotated"])
+        shapes = {d: f[d].shape for d in ("images", "masks", "confidence")}
+        if (len(shapes["images"]) != 4 or shapes["images"][3] != 3 or shapes["masks"] != shapes["images"][:3]
+                or shapes["confidence"] != shapes["images"][:3] or shapes["images"][0] != n or len(f["frame_names"]) != n):
+            raise TrainError(f"{path}: labels.h5 datasets do not fit together "
+                             f"({', '.join(f'{k} {v}' for k, v in shapes.items())}, {n} frames)")
         annotated = f["annotated"][()].astype(bool)
-        keep = np.flatnonzero(annotated) if only_annotated else np.arange(len(annotated))
+        keep = np.flatnonzero(annotated) if only_annotated else np.arange(n)
         if keep.size == 0:
-            raise TrainError(f"{path}: no annotated frames (--only-annotated)")
+            raise TrainError(f"{path}: no annotated frames" + (" (--only-annotated)" if only_annotated else ""))
         names = [str(s) for s in f["frame_names"].asstr()[()]]
-        images = [f["images"][i] for i in keep]
-        masks = [f["masks"][i] for i in keep]
-        confidence = [f["confidence"][i].astype(np.float16) for i in keep]
-    return Source(path, "labels", classes, [names[i] for i in keep], images, masks, confidence, annotated[keep])
+        size = (int(shapes["images"][2]), int(shapes["images"][1]))
+    return Source(path, "labels", classes, [names[i] for i in keep], annotated[keep], [size] * len(keep),
+                  [int(i) for i in keep], _H5Frames(path))
 
 
 def load_capture_source(path: Path) -> Source:
@@ -117,15 +187,12 @@ def load_capture_source(path: Path) -> Source:
     indices = [i for i, f in enumerate(capture.frames) if f.annotation_path is not None]
     if not indices:
         raise TrainError(f"{path / 'annotations'}: the capture has no annotations to train from")
-    images, masks, conf = [], [], []
-    for i in indices:
-        image = capture.load_image(i)
-        mask = capture.load_annotation(i)
-        images.append(image)
-        masks.append(mask)
-        conf.append(np.ones(mask.shape, dtype=np.float16))
+    images = [capture.load_image(i) for i in indices]
+    masks = [capture.load_annotation(i) for i in indices]
     names = [capture.frames[i].name for i in indices]
-    return Source(path, "capture", capture.classes, names, images, masks, conf, np.ones(len(indices), dtype=bool))
+    sizes = [(m.shape[1], m.shape[0]) for m in masks]
+    return Source(path, "capture", capture.classes, names, np.ones(len(indices), dtype=bool), sizes,
+                  list(range(len(indices))), _InMemory(images, masks))
 
 
 def load_source(path: str | Path, only_annotated: bool = False) -> Source:
@@ -164,11 +231,7 @@ def class_table_json(classes: ClassMap) -> str:
 
 # --- the split -----------------------------------------------------------------------------
 def _frames(source: Source, indices: range | list[int]) -> list[Frame]:
-    return [
-        Frame(source.images[i], source.masks[i], source.confidence[i], bool(source.annotated[i]), source.name,
-              source.names[i])
-        for i in indices
-    ]
+    return [Frame(source, i, bool(source.annotated[i]), source.name, source.names[i]) for i in indices]
 
 
 def _matches(source: Source, key: str) -> bool:
@@ -260,8 +323,9 @@ class FrameDataset(torch.utils.data.Dataset):
 
     def __init__(self, frames: list[Frame], classes: ClassMap, transform=None, *, min_confidence: float = 0.0,
                  expert_weight: float = 1.0, confidence_weight: bool = True,
-                 class_weight: np.ndarray | None = None) -> None:
+                 class_weight: np.ndarray | None = None, size: tuple[int, int] | None = None) -> None:
         self.frames = frames
+        self.size = size  # (W, H) every frame is resized to before augmentation; None: as stored
         self.lut = classes.id_to_index_lut()
         self.transform = transform
         self.kw = dict(min_confidence=min_confidence, expert_weight=expert_weight, confidence_weight=confidence_weight,
@@ -272,8 +336,8 @@ class FrameDataset(torch.utils.data.Dataset):
 
     def __getitem__(self, i: int) -> dict[str, torch.Tensor]:
         fr = self.frames[i]
-        target, weight = make_target(fr.mask, fr.confidence, fr.annotated, self.lut, **self.kw)
-        image = fr.image
+        image, mask, confidence = fr.load(self.size)
+        target, weight = make_target(mask, confidence, fr.annotated, self.lut, **self.kw)
         if self.transform is not None:
             out = self.transform(image=image, mask=target, weight=weight)
             image, target, weight = out["image"], out["mask"], out["weight"]

@@ -39,8 +39,9 @@ CHECKPOINT_KEYS = {"model", "optimizer", "step", "config", "classes", "history"}
 class TrainConfig:
     """Everything that decides a run (stored in checkpoint.pt and train.json)."""
 
-    arch: str = "segformer"
-    encoder: str | None = None  # None: the arch's default (segformer b0, unet/fpn resnet18)
+    arch: str | None = None  # None: segformer, or the checkpoint's with --resume
+    encoder: str | None = None  # None: the arch's default (segformer b0, unet/fpn resnet18), or the checkpoint's
+    input_size: str | None = None  # "WxH" frames are resized to (and segment feeds); None: the frames' own size
     steps: int = 400  # ~8 min at batch 8, crop 256 with SegFormer-b0 on 2 CPU cores (1.2 s a step)
     batch_size: int = 8
     crop: int = 256
@@ -71,6 +72,7 @@ class TrainConfig:
             raise TrainError(f"--expert-weight {self.expert_weight}: must be >= 0")
         if self.eval_every is not None and self.eval_every < 1:
             raise TrainError(f"--eval-every {self.eval_every}: must be at least 1")
+        parse_input_size(self.input_size)
 
 
 @dataclass
@@ -136,6 +138,18 @@ def save_checkpoint(path: Path, model, optimizer, step: int, config: TrainConfig
         torch.save(state, tmp)
 
 
+def adopt_checkpoint_model(cfg: TrainConfig, saved: dict[str, Any], path: Path) -> None:
+    """``--resume`` continues the checkpoint's model: its arch, encoder and input size fill in
+    what was not given, and an ``--arch``/``--encoder``/``--input-size`` that differs is refused
+    (a silently different model would not load its weights, or would train at another size)."""
+    for name, option in (("arch", "--arch"), ("encoder", "--encoder"), ("input_size", "--input-size")):
+        mine, theirs = getattr(cfg, name), saved.get(name)
+        if mine is not None and mine != theirs:
+            was = f"{option} {theirs}" if theirs is not None else "the frames' own size"
+            raise TrainError(f"{path}: was trained with {was}; --resume cannot continue it with {option} {mine}")
+        setattr(cfg, name, theirs)
+
+
 def load_checkpoint(path: Path) -> dict[str, Any]:
     """checkpoint.pt, checked: a file torch cannot read or that lacks a key is one line naming it."""
     try:
@@ -184,11 +198,13 @@ def evaluate(model, split: Split, classes: ClassMap, cfg: TrainConfig, multiple:
     counts = torch.zeros(3, classes.num_classes, dtype=torch.long)
     losses = []
     class_weight = parse_class_weights(cfg.class_weights, classes)
+    size = parse_input_size(cfg.input_size)
     for fr in split.val:
-        target, weight = make_target(fr.mask, fr.confidence, fr.annotated, lut, min_confidence=cfg.min_confidence,
+        image, mask, confidence = fr.load(size)
+        target, weight = make_target(mask, confidence, fr.annotated, lut, min_confidence=cfg.min_confidence,
                                      expert_weight=cfg.expert_weight, confidence_weight=cfg.confidence_weight,
                                      class_weight=class_weight)
-        logits = _forward_full(model, fr.image, multiple, device)[None]
+        logits = _forward_full(model, image, multiple, device)[None]
         t = torch.from_numpy(target).long()[None].to(device)
         loss, _ = segmentation_loss(logits, t, torch.from_numpy(weight)[None].to(device), dice_weight=cfg.dice_weight)
         if (t != IGNORE_ID).any():
@@ -203,10 +219,27 @@ def evaluate(model, split: Split, classes: ClassMap, cfg: TrainConfig, multiple:
     return (float(np.mean(losses)) if losses else None), dice
 
 
-def _frame_size(split: Split) -> tuple[int, int]:
-    """The most common (W, H) of the frames: the size ``segment`` feeds the model by default."""
-    sizes = Counter((fr.image.shape[1], fr.image.shape[0]) for fr in split.train + split.val)
+def _frame_size(split: Split, cfg: TrainConfig) -> tuple[int, int]:
+    """The (W, H) the model was trained at: ``--input-size``, else the most common frame size.
+    ``segment`` resizes every frame to it (the ONNX metadata says so)."""
+    size = parse_input_size(cfg.input_size)
+    if size is not None:
+        return size
+    sizes = Counter(fr.size for fr in split.train + split.val)
     return sizes.most_common(1)[0][0]
+
+
+def parse_input_size(text: str | None) -> tuple[int, int] | None:
+    """``"320x240"`` -> (320, 240); None stays None (frames keep their size)."""
+    if text is None or text == "":
+        return None
+    try:
+        w, h = (int(v) for v in str(text).lower().split("x"))
+    except ValueError:
+        raise TrainError(f"--input-size {text!r}: expected WxH, e.g. 320x240") from None
+    if w < 16 or h < 16:
+        raise TrainError(f"--input-size {text!r}: both sides must be at least 16 pixels")
+    return w, h
 
 
 def write_curves(path: Path, history: list[dict[str, Any]], class_names: list[str]) -> None:
@@ -256,9 +289,9 @@ def train(sources: list[str | Path], out: str | Path, cfg: TrainConfig | None = 
     t0 = time.perf_counter()
     prepare_out(out, sources, force=force, resume=resume)
     state = load_checkpoint(out / "checkpoint.pt") if resume else None
-    if state is not None:  # what the model is comes from the checkpoint
-        saved = state["config"]
-        cfg.arch, cfg.encoder = saved["arch"], saved["encoder"]
+    if state is not None:  # what the model is comes from the checkpoint; asking for another is an error
+        adopt_checkpoint_model(cfg, state["config"], out / "checkpoint.pt")
+    cfg.arch = cfg.arch or "segformer"
 
     loaded, classes = load_sources(list(sources), cfg.only_annotated)
     if state is not None and state["classes"].to_json() != classes.to_json():
@@ -292,7 +325,8 @@ def train(sources: list[str | Path], out: str | Path, cfg: TrainConfig | None = 
 
     dataset = FrameDataset(split.train, classes, build_augment(cfg.crop, seed=cfg.seed + step),
                            min_confidence=cfg.min_confidence, expert_weight=cfg.expert_weight,
-                           confidence_weight=cfg.confidence_weight, class_weight=class_weight)
+                           confidence_weight=cfg.confidence_weight, class_weight=class_weight,
+                           size=parse_input_size(cfg.input_size))
     generator = torch.Generator().manual_seed(cfg.seed + step)
     loader = torch.utils.data.DataLoader(dataset, batch_size=min(cfg.batch_size, len(dataset)), shuffle=True,
                                          drop_last=True, num_workers=cfg.workers, generator=generator)
@@ -351,7 +385,7 @@ def train(sources: list[str | Path], out: str | Path, cfg: TrainConfig | None = 
         from .export_onnx import export_onnx
 
         t_export = time.perf_counter()
-        export_onnx(model, out / "model.onnx", classes, _frame_size(split))
+        export_onnx(model, out / "model.onnx", classes, _frame_size(split, cfg))
         export_seconds = time.perf_counter() - t_export
         write_curves(out / "curves.png", history, classes.names)
 
@@ -371,7 +405,7 @@ def train(sources: list[str | Path], out: str | Path, cfg: TrainConfig | None = 
         "times": {"load_s": round(load_seconds, 3), "train_s": round(train_seconds, 3),
                   "export_s": round(export_seconds, 3), "total_s": round(seconds, 3)},
         "outputs": {"onnx": "model.onnx", "input": "pixel_values (N,3,H,W) RGB, ImageNet mean/std",
-                    "output": "logits (N,C,h,w)", "input_size": "x".join(map(str, _frame_size(split)))},
+                    "output": "logits (N,C,h,w)", "input_size": "x".join(map(str, _frame_size(split, cfg)))},
     }
     write_text_atomic(out / "train.json", json.dumps(report, indent=2))
     if interrupted:

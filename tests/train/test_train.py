@@ -128,6 +128,14 @@ def test_resume_continues_the_step_count(sources, tmp_path):
     assert report["resumed_from"] == 2 and report["step"] == 4
     assert [h["step"] for h in report["history"]] == [1, 2, 3, 4]
     assert torch.load(out / "checkpoint.pt", weights_only=True)["step"] == 4
+    for option, value in (("--arch", "unet"), ("--encoder", "b1"), ("--input-size", "32x24")):
+        refused = _invoke(sources["cap0"], sources["cap1"], "--out", out, *TINY[2:], "--steps", "5", "--resume",
+                          option, value)
+        _one_line_error(refused, str(out / "checkpoint.pt"), f"{option} {value}")
+    assert torch.load(out / "checkpoint.pt", weights_only=True)["step"] == 4  # refused runs changed nothing
+    same = _invoke(sources["cap0"], sources["cap1"], "--out", out, *TINY[2:], "--steps", "4", "--resume",
+                   "--arch", "segformer", "--encoder", "b0")
+    assert same.exit_code == 0, same.output  # naming the checkpoint's own model is fine
 
 
 def test_interrupt_saves_a_checkpoint_that_resumes(sources, tmp_path, monkeypatch):
@@ -242,6 +250,46 @@ def test_labels_h5_min_confidence_reaches_the_training_targets(sources):
     right = item["weight"][:, W // 2 :][item["target"][:, W // 2 :] != IGNORE_ID]
     expected = 0.9 * (3.0 if loaded[0].annotated[0] else 1.0)
     assert torch.allclose(right, torch.full_like(right, expected), rtol=1e-2)
+
+
+def test_labels_h5_is_streamed_frame_by_frame_and_survives_pickling(sources):
+    """The source keeps no pixels; each item is read from the file (also in a worker's copy)."""
+    import pickle
+
+    import h5py
+
+    from labelsynth.train.data import FrameDataset
+
+    loaded, classes = load_sources([sources["h5"]])
+    src = loaded[0]
+    assert not any(isinstance(v, np.ndarray) and v.ndim >= 2 for v in vars(src).values())
+    with h5py.File(sources["h5"], "r") as f:
+        expected = f["images"][2], f["masks"][2]
+    image, mask, _ = src.read(2)
+    assert np.array_equal(image, expected[0]) and np.array_equal(mask, expected[1])
+    frames = split_by_capture(loaded).train
+    ds = FrameDataset(frames, classes)
+    copy = pickle.loads(pickle.dumps(ds))  # what a DataLoader worker gets
+    for a, b in zip(ds[1].values(), copy[1].values()):
+        assert torch.equal(a, b)
+
+
+def test_input_size_resizes_frames_masks_by_nearest(sources):
+    from labelsynth.train.data import FrameDataset
+    from labelsynth.train.loop import TrainConfig, _frame_size
+
+    loaded, classes = load_sources([sources["h5"]])
+    split = split_by_capture(loaded)
+    ds = FrameDataset(split.train, classes, size=(32, 24))
+    item = ds[0]
+    assert item["image"].shape == (3, 24, 32) and item["target"].shape == (24, 32)
+    _, mask, _ = split.train[0].load()
+    lut = classes.id_to_index_lut()
+    assert set(item["target"].unique().tolist()) <= set(lut[np.unique(mask)].tolist()) | {IGNORE_ID}
+    assert _frame_size(split, TrainConfig(input_size="32x24")) == (32, 24)
+    assert _frame_size(split, TrainConfig()) == (W, H)
+    with pytest.raises(TrainError, match="--input-size"):
+        TrainConfig(input_size="32by24").check()
 
 
 # --- the split ------------------------------------------------------------------------------------
