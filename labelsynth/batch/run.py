@@ -247,12 +247,16 @@ def run_batch(
     ray_address = ""
     with make_progress(progress) as bar:
         task = bar.add_task("captures", total=len(jobs), status="")
-        for row in rows.values():
-            bar.console.print(row.line())
+        def landed(row: BatchRow) -> None:
+            if progress:
+                bar.console.print(row.line())
             bar.advance(task)
+
+        for row in rows.values():
+            landed(row)
         if todo:
-            ray_address = _run_tasks(todo, out, options, rows, bar, task, address=address, cpus=cpus_per_capture,
-                                     gpus=gpus_per_capture, retries=retries)
+            ray_address = _run_tasks(todo, out, options, rows, bar, task, landed, address=address,
+                                     cpus=cpus_per_capture, gpus=gpus_per_capture, retries=retries)
     ordered = [rows[j.name] for j in jobs]
 
     finished = [(r.name, Path(r.output) / "labels.h5") for r in ordered if r.status in ("done", "skipped")]
@@ -272,7 +276,7 @@ def run_batch(
 
 
 def _run_tasks(todo: list[tuple[CaptureJob, Marker]], out: Path, options: ExpandOptions, rows: dict[str, BatchRow],
-               bar, task, *, address: str | None, cpus: int | None, gpus: float, retries: int) -> str:
+               bar, task, landed, *, address: str | None, cpus: int | None, gpus: float, retries: int) -> str:
     """Submit one task per capture, fill ``rows`` as they land; returns the cluster's address."""
     ray, started = _connect(address)
     try:
@@ -308,8 +312,7 @@ def _run_tasks(todo: list[tuple[CaptureJob, Marker]], out: Path, options: Expand
                         row.frames = res.get("frames")
                         read_quality(output, row)
                 rows[job.name] = row
-                bar.console.print(row.line())
-                bar.advance(task)
+                landed(row)
                 bar.update(task, status=f"{len(pending)} left" if pending else "")
         try:
             address_used = ray.get_runtime_context().gcs_address

@@ -50,6 +50,9 @@ class BatchRow:
         if self.flagged:
             extra.append(f"{len(self.flagged)} flagged")
         tail = f" ({', '.join(extra)})" if extra else ""
+        if self.status == "skipped":
+            took = "" if self.seconds is None else f"; its run took {self.seconds:.0f} s"
+            return f"{self.name}: skipped, unchanged since the last run{took}{tail}"
         return f"{self.name}: {self.status}{t}{tail}"
 
 
