@@ -16,6 +16,7 @@ the OOM killer, a lost node) is a system failure that Ray retries ``retries`` ti
 
 from __future__ import annotations
 
+import dataclasses
 import os
 import time
 from dataclasses import dataclass, field
@@ -23,7 +24,7 @@ from pathlib import Path
 from typing import Any
 
 from ..errors import CheckError, LabelsynthError
-from ..progress import console, make_progress
+from ..progress import make_progress
 from .discover import BatchError, CaptureJob, discover
 from .marker import Marker, clear_marker, is_done, make_marker, write_marker
 from .merge import merge_labels
@@ -216,7 +217,7 @@ def run_batch(
     from ..recipe import load_recipe
 
     t_start = time.time()
-    options = options or ExpandOptions()
+    options = dataclasses.replace(options) if options is not None else ExpandOptions()  # the caller's stays as given
     out = Path(out)
     if retries < 0:
         raise BatchError(f"--retries must be >= 0, not {retries}")
@@ -224,6 +225,8 @@ def run_batch(
         raise BatchError(f"--labels must be one of {', '.join(LABEL_MODES)}, not '{options.labels}'")
     if options.device not in ("auto", "cpu", "cuda"):
         raise BatchError(f"unknown device '{options.device}' (use auto, cpu or cuda)")
+    if options.device == "cuda" and not gpus_per_capture:
+        raise BatchError("--device cuda needs --gpus-per-capture: Ray gives a task a GPU only when it reserves one")
     if out.exists() and not out.is_dir():
         raise BatchError(f"{out}: exists and is not a folder")
     jobs = discover(source, out)

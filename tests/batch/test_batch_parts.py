@@ -127,6 +127,19 @@ def test_resource_requests_that_no_node_meets_are_clear_errors():
         check_resources(9, 0, 8, 0)
 
 
+def test_bad_options_fail_before_any_capture_or_ray(tmp_path):
+    from labelsynth.batch import ExpandOptions, run_batch
+
+    with pytest.raises(BatchError, match="--device cuda needs --gpus-per-capture"):
+        run_batch(tmp_path, tmp_path / "out", ExpandOptions(device="cuda"))
+    with pytest.raises(BatchError, match="--labels must be one of"):
+        run_batch(tmp_path, tmp_path / "out", ExpandOptions(labels="all"))
+    _capture(tmp_path / "c")
+    with pytest.raises(Exception, match="unknown recipe 'nope'"):
+        run_batch(tmp_path, tmp_path / "out", ExpandOptions(recipe="nope"))
+    assert not (tmp_path / "out").exists()
+
+
 def test_one_line_reasons():
     err = CheckError(["a.png: truncated", "b.png: bad id 9"], "2 problems in C")
     assert one_line(err) == "a.png: truncated (and 1 more problem)"
