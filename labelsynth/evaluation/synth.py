@@ -1241,3 +1241,31 @@ def _write_frames(cap: Path, truth_dir: Path, scene: _Scene, cams: list[Camera],
         frames_json.append({"file_path": f"images/{name}.png",
                             "transform_matrix": [[float(v) for v in row] for row in cam.c2w]})
     return frames_json
+
+
+class SynthScene:
+    """The scene of a ``synth`` capture rebuilt from its config, to render exact truth (and the
+    image) at any camera: novel views are scored against it (``benchmarks/bench_augment.py``).
+
+    The scene and lights are drawn from the same generator as ``synthesize`` draws them, so at a
+    frame's own camera ``render`` gives back that frame's image and truth exactly.
+    """
+
+    def __init__(self, cfg: SynthConfig) -> None:
+        self.config = cfg
+        self._scene, self.cameras, _, self._lights = _scene_and_cameras(np.random.default_rng([cfg.seed, 0]), cfg)
+
+    @classmethod
+    def from_truth(cls, truth_dir: str | Path) -> "SynthScene":
+        """From OUT/truth/scene.json as ``synthesize`` wrote it."""
+        path = Path(truth_dir) / "scene.json"
+        try:
+            config = json.loads(path.read_text())["config"]
+            return cls(SynthConfig(**config))
+        except (OSError, json.JSONDecodeError, KeyError, TypeError) as exc:
+            raise LabelsynthError(f"{path}: not a synth scene.json ({exc})") from None
+
+    def render(self, camera: Camera) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(RGB uint8 (H,W,3), class ids uint8 (H,W), ray distance float32 (H,W), inf on a miss)
+        of a camera in the capture's world coordinates."""
+        return self._scene.render(camera, self._lights)
