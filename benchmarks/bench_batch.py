@@ -4,7 +4,8 @@ of `pipeline.expand` in one process, on this machine.
     python benchmarks/bench_batch.py [--captures 3 --frames 12 --width 320 --height 240
                                       --recipe fast --report/--no-report --parallel --work DIR]
 
-Prints, for each way: wall time, peak memory (the largest sum of RSS over the process and all
+Prints Ray's own costs first (start, a cold worker's first task with the pipeline's imports, a
+warm task's round trip, shutdown), then for each way: wall time, peak memory (the largest sum of RSS over the process and all
 its descendants, sampled every 0.2 s from /proc: Ray's GCS, raylet and workers count), and for
 batch Ray's overhead per capture = (batch wall - the sum of the expand times measured inside the
 tasks) / K, also as a share of the loop's mean expand time. Batch asks for --threads CPUs per
@@ -71,6 +72,48 @@ class PeakMemory:
         self.peak = max(self.peak, _tree_rss(os.getpid()))
 
 
+def _import_pipeline() -> float:
+    """In a worker: what a first task pays to import the pipeline (torch, OpenCV, ...)."""
+    t0 = time.time()
+    import labelsynth.pipeline  # noqa: F401
+
+    return time.time() - t0
+
+
+def _noop() -> int:
+    return os.getpid()
+
+
+def ray_costs(cpus: int) -> dict[str, float]:
+    """Ray's fixed costs on this machine, apart from any fit: start, a cold worker's first task
+    (importing the pipeline), a warm task's round trip, shutdown."""
+    import ray
+
+    t0 = time.time()
+    ray.init(address="local", num_cpus=cpus, include_dashboard=False, log_to_driver=False,
+             logging_level=logging.WARNING)
+    start = time.time() - t0
+    t0 = time.time()
+    imported = ray.get(ray.remote(_import_pipeline).options(num_cpus=cpus).remote())
+    first = time.time() - t0
+    noop = ray.remote(_noop).options(num_cpus=cpus)
+    ray.get(noop.remote())
+    t0 = time.time()
+    for _ in range(20):
+        ray.get(noop.remote())
+    warm = (time.time() - t0) / 20
+    t0 = time.time()
+    ray.shutdown()
+    return {"start": start, "first task": first, "of which import": imported, "warm task": warm,
+            "shutdown": time.time() - t0}
+
+
+def _print_costs(cpus: int) -> None:
+    costs = ray_costs(cpus)
+    print("Ray's own costs: " + ", ".join(f"{k} {v:.2f} s" for k, v in costs.items())
+          + f", load {open('/proc/loadavg').read().split()[:3]}")
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--captures", type=int, default=3)
@@ -86,6 +129,7 @@ def main() -> None:
     ap.add_argument("--threads", type=int, default=os.cpu_count() or 1,
                     help="compute threads of each expand: the loop's torch threads and batch's --cpus-per-capture "
                          "(default: every core)")
+    ap.add_argument("--costs-only", action="store_true", help="only Ray's own costs (seconds, no fits)")
     ap.add_argument("--work", type=Path, default=None, help="folder for captures and outputs (default: a temp dir)")
     args = ap.parse_args()
 
@@ -98,6 +142,9 @@ def main() -> None:
     from labelsynth.evaluation.synth import SynthConfig, synthesize
     from labelsynth.pipeline import expand
 
+    if args.costs_only:
+        _print_costs(args.threads)
+        return
     work = args.work or Path(tempfile.mkdtemp(prefix="bench_batch_"))
     root = work / "captures"
     if root.exists():
@@ -115,6 +162,7 @@ def main() -> None:
 
     import ray
 
+    _print_costs(args.threads)
     rows = []
     # (label, CPUs per capture, CPUs of the Ray instance): the first runs one capture at a time
     runs = [(f"batch, {args.threads} CPUs per capture", args.threads, args.threads)]

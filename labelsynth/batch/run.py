@@ -250,6 +250,7 @@ def run_batch(
     ray_address = ""
     with make_progress(progress) as bar:
         task = bar.add_task("captures", total=len(jobs), status="")
+
         def landed(row: BatchRow) -> None:
             if progress:
                 bar.console.print(row.line())
