@@ -203,3 +203,21 @@ def test_merge_refuses_different_class_tables(tmp_path):
     with pytest.raises(BatchError, match="class table differs"):
         merge_labels(out, [("a", out / "captures" / "a" / "labels.h5"), ("b", out / "captures" / "b" / "labels.h5")])
     assert not (out / "dataset.h5").exists() and not (out / "dataset.h5.partial").exists()
+
+
+def test_quality_columns_come_from_the_capture_report(tmp_path):
+    from labelsynth.batch.table import read_quality
+
+    (tmp_path / "run.json").write_text(json.dumps({"seconds": {"geometry": 10.0, "semantics": 5.0, "render": 1.5}}))
+    (tmp_path / "report.json").write_text(json.dumps({"summary": {
+        "num_frames": 6, "median_agreement": {"wound_bed": 0.93}, "median_loo_dice": {"wound_bed": 0.88},
+        "flagged": ["frame_003"]}}))
+    row = BatchRow("a", "/c/a", "skipped")
+    read_quality(tmp_path, row)
+    assert (row.seconds, row.frames, row.wound_bed_agreement, row.wound_bed_loo_dice, row.flagged) == \
+        (16.5, 6, 0.93, 0.88, ["frame_003"])
+    assert "its run took 16 s" in row.line() and "1 flagged" in row.line()
+    (tmp_path / "report.json").unlink()  # --no-report: the columns stay empty
+    bare = BatchRow("b", "/c/b", "done", seconds=3.0)
+    read_quality(tmp_path, bare)
+    assert bare.wound_bed_agreement is None and bare.flagged == [] and bare.seconds == 3.0
