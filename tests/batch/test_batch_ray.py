@@ -175,6 +175,12 @@ def test_a_worker_killed_with_minus_9(ray_local, captures, tmp_path):
     assert (tmp_path / "retried" / "captures" / "alpha" / "labels.h5").is_file()
 
 
+def _ray_cli() -> str:
+    """The `ray` script of this interpreter's environment (PATH may hold another)."""
+    beside = Path(sys.executable).with_name("ray")
+    return str(beside) if beside.is_file() else "ray"
+
+
 def _free_port() -> int:
     with socket.socket() as s:
         s.bind(("127.0.0.1", 0))
@@ -189,7 +195,7 @@ def test_address_attaches_to_a_ray_start_head(captures, tmp_path):
     # Ray sends a token to a named cluster only when RAY_AUTH_MODE says so.
     env["RAY_AUTH_MODE"], env["RAY_AUTH_TOKEN"] = "token", secrets.token_hex(32)
     head = subprocess.Popen(
-        ["ray", "start", "--head", "--port", str(port), "--num-cpus", "1", "--include-dashboard=false", "--block",
+        [_ray_cli(), "start", "--head", "--port", str(port), "--num-cpus", "1", "--include-dashboard=false", "--block",
          "--node-ip-address", "127.0.0.1"],
         stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, start_new_session=True, env=env)
     try:
