@@ -7,10 +7,11 @@ written (``outdir.building``), so an interrupted run never leaves an OUT that lo
 from __future__ import annotations
 
 import json
+import math
 import shutil
 import time
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
@@ -57,7 +58,8 @@ class ExpandResult:
             f"{len(self.frames)} masks in {self.out / 'masks'}; dataset {self.out / 'labels.h5'}; "
             f"labels={self.labels}; {total:.0f} s "
             f"(geometry {self.seconds.get('geometry', 0):.0f} s, semantics {self.seconds.get('semantics', 0):.0f} s, "
-            f"render {self.seconds.get('render', 0):.0f} s)"
+            f"render {self.seconds.get('render', 0):.0f} s"
+            + (f", report {self.seconds['report']:.0f} s)" if "report" in self.seconds else ")")
         )
 
 
@@ -169,13 +171,19 @@ def fit_semantics(
     baked: BakedRays | None = None,
     seed: int = 0,
     progress: bool = True,
+    steps_fraction: float = 1.0,
 ) -> dict:
     """(Re)train the semantic head on frozen geometry from the given labelled frames.
 
     Pass ``baked`` (from an earlier call's ``sem.baked``) with ``exclude`` to leave frames out
     without re-sampling the rays: leave-one-out then costs only the head's training.
+    ``steps_fraction`` scales the head's steps and epochs (the report's refits: ``report.loo_fraction``).
     """
     recipe = sem.recipe
+    cfg = recipe.semantic
+    if steps_fraction != 1.0:
+        cfg = replace(cfg, iterations=max(1, math.ceil(cfg.iterations * steps_fraction)),
+                      min_epochs=cfg.min_epochs * steps_fraction)
     if baked is None:
         baked = bake_semantic_rays(
             sem.sdf, sem.grid, frames, sem.classes, recipe.semantic, recipe.geometry.march_steps, seed=seed, progress=progress
@@ -185,8 +193,8 @@ def fit_semantics(
         baked = baked.without(set(exclude))
         if len(baked) == 0:
             raise LabelsynthError("no labelled pixels left after leaving out " + ", ".join(sorted(exclude)))
-    head = make_semantic_head(sem.sdf, sem.classes, recipe.semantic)
-    stats = train_semantic(head, baked, sem.classes, recipe.semantic, seed=seed, progress=progress)
+    head = make_semantic_head(sem.sdf, sem.classes, cfg)
+    stats = train_semantic(head, baked, sem.classes, cfg, seed=seed, progress=progress)
     sem.head = head
     return vars(stats)
 
@@ -282,9 +290,10 @@ def expand(
         stats["seconds"]["render"] = time.time() - t0
         if report:
             t0 = time.time()
-            _report(partial, capture, sem, masks, mode, seed=seed, progress=progress, mesh_format=mesh_format,
-                    mm_per_unit=mm_per_unit)
+            rep = _report(partial, capture, sem, masks, mode, seed=seed, progress=progress, mesh_format=mesh_format,
+                          mm_per_unit=mm_per_unit)
             stats["seconds"]["report"] = time.time() - t0
+            stats["report_seconds"] = rep["summary"]["phase_seconds"]
         chosen = None if annotated_frames is None else [f.name for f in capture.frames if f.annotation_path is not None]
         _write_run_json(partial, capture_dir, mode, chosen, rec, dev, seed, stats)
     return ExpandResult(
@@ -299,17 +308,21 @@ def expand(
 
 
 def refit_without(sem: SemanticField, capture: Capture, mode: str, seed: int = 0) -> Callable[[str], None]:
-    """The report's leave-one-view-out: retrain the head without one frame, geometry frozen.
+    """The report's leave-one-view-out: retrain a fresh head without one frame, geometry frozen,
+    for ``report.loo_fraction`` of the semantic stage's steps.
 
     Reuses the full fit's baked rays minus that frame's when they are there (no re-sampling),
     else bakes the remaining frames' labels afresh.
     """
 
+    fraction = sem.recipe.report.loo_fraction
+
     def refit(name: str) -> None:
         if sem.baked is not None:
-            fit_semantics(sem, [], exclude={name}, baked=sem.baked, seed=seed, progress=False)
+            fit_semantics(sem, [], exclude={name}, baked=sem.baked, seed=seed, progress=False, steps_fraction=fraction)
         else:
-            fit_semantics(sem, labelled_frames(capture, mode, sem.recipe, exclude={name}), seed=seed, progress=False)
+            fit_semantics(sem, labelled_frames(capture, mode, sem.recipe, exclude={name}), seed=seed, progress=False,
+                          steps_fraction=fraction)
 
     return refit
 

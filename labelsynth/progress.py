@@ -2,7 +2,9 @@
 
 from __future__ import annotations
 
+import time
 from collections.abc import Iterable, Iterator
+from contextlib import contextmanager, nullcontext
 from typing import TypeVar
 
 from rich.console import Console
@@ -44,3 +46,17 @@ def track(items: Iterable[T], description: str, total: int | None = None, enable
         for item in items:
             yield item
             progress.advance(task)
+
+
+@contextmanager
+def phase(seconds: dict[str, float], name: str, spinner: str | None = None, enabled: bool = True) -> Iterator[None]:
+    """Time a step into ``seconds[name]`` (run.json and the report record them).
+
+    ``spinner`` names a step that has no count to show a bar for (a mesh, the figures): a
+    spinner with that text runs while it works. Steps that draw their own bar pass none, since
+    rich shows one live display at a time.
+    """
+    t0 = time.perf_counter()
+    with console.status(spinner) if enabled and spinner else nullcontext():
+        yield
+    seconds[name] = seconds.get(name, 0.0) + time.perf_counter() - t0

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import math
 import shutil
 
 import cv2
@@ -67,6 +68,11 @@ def test_outputs_follow_the_contract(tiny_expanded):
         assert np.array_equal(f["masks"][0], m)
     run_info = json.loads((out / "run.json").read_text())
     assert run_info["labels"] == "annotations" and run_info["recipe"]["name"] == "fast"
+    # every phase timed, the report's own steps too (the speed issue's profile reads them)
+    assert {"check", "geometry", "semantics", "render", "report"} <= set(run_info["seconds"])
+    phases = run_info["report_seconds"]
+    assert {"agreement", "leave_one_out", "pairwise", "mesh", "figures"} <= set(phases)
+    assert phases["leave_one_out"] > 0 and sum(phases.values()) <= run_info["seconds"]["report"] + 1e-6
     assert (out / "field.pt").exists() and (out / "report.json").exists()
     assert not out.with_name(out.name + ".partial").exists()
     after = {p: p.read_bytes() for p in run.capture_dir.rglob("*") if p.is_file()}
@@ -119,3 +125,23 @@ def test_cli_no_report_writes_masks_and_no_report(tiny_expanded, tmp_path):
         assert (out / name).is_file()
     assert not (out / "report.json").exists() and not (out / "mesh.ply").exists()
     assert "report" not in json.loads((out / "run.json").read_text())["seconds"]
+
+
+@pytest.mark.xdist_group("tiny_expanded")
+def test_leave_one_out_refit_trains_a_fresh_head_for_a_fraction_of_the_steps(tiny_expanded):
+    """report.loo_fraction: the refit's head starts afresh (not the full head warm-started)
+    and trains that fraction of the semantic stage's steps."""
+    from labelsynth.pipeline import labelled_frames
+
+    capture = load_capture(tiny_expanded.capture_dir)
+    sem = SemanticField.load(tiny_expanded.out / "field.pt", torch.device("cpu"))
+    frames = labelled_frames(capture, "annotations", sem.recipe)
+    full_iters = sem.recipe.semantic.iterations
+    full = fit_semantics(sem, frames, progress=False)
+    full_head = sem.head
+    part = fit_semantics(sem, [], exclude={tiny_expanded.good[0]}, baked=sem.baked, progress=False,
+                         steps_fraction=sem.recipe.report.loo_fraction)
+    assert full["iterations"] == full_iters
+    assert part["iterations"] == math.ceil(full_iters * sem.recipe.report.loo_fraction) < full_iters
+    assert sem.head is not full_head
+    assert part["rays"] < full["rays"]

@@ -130,3 +130,10 @@ def test_recipes_load_and_reject_typos():
         load_recipe("no-such-recipe")
     with pytest.raises(RecipeError, match="class_weighting: 'balanced' is not one of"):
         load_recipe("fast", ["semantic.class_weighting=balanced"])
+
+
+@pytest.mark.parametrize("value", ["0", "1.5", "-0.1"])
+def test_loo_fraction_out_of_range_is_one_line(value):
+    with pytest.raises(RecipeError, match=r"report\.loo_fraction") as err:
+        load_recipe("default", [f"report.loo_fraction={value}"])
+    assert "\n" not in str(err.value)

@@ -15,6 +15,7 @@ from ..capture.model import Capture
 from ..classes import WOUND_BED, ClassMap
 from ..errors import LabelsynthError
 from ..export.mesh import MESH_FORMATS, export_labelled_mesh
+from ..progress import phase
 from . import plots
 from .consistency import (
     Check,
@@ -190,9 +191,12 @@ def build_report(
         raise LabelsynthError(f"report: no field mask for frame(s) {', '.join(missing[:5])}")
     if mesh_format is not None and mesh_format not in MESH_FORMATS:
         raise LabelsynthError(f"--mesh-format must be one of {', '.join(MESH_FORMATS)}, not '{mesh_format}'")
-    ann, pred = _inputs(capture)
-    frames = _agreement_rows(names, ann, pred, masks, classes)
-    loo_masks = _leave_one_out(sem, capture, ann, taught, refit, progress) if loo else {}
+    seconds: dict[str, float] = {}
+    with phase(seconds, "agreement", "report: reading every input mask", progress):
+        ann, pred = _inputs(capture)
+        frames = _agreement_rows(names, ann, pred, masks, classes)
+    with phase(seconds, "leave_one_out"):
+        loo_masks = _leave_one_out(sem, capture, ann, taught, refit, progress) if loo else {}
     for f in frames:
         if f["annotated"]:
             m = loo_masks.get(f["name"])
@@ -202,21 +206,25 @@ def build_report(
     views = [n for n in names if n in taught]
     cams = capture.unit_cameras()
     index = {n: i for i, n in enumerate(names)}
-    pairwise = pairwise_consistency(
-        sem.caster(), [cams[index[n]] for n in views], [taught[n] for n in views], classes, progress=progress,
-    ) if views else []
+    with phase(seconds, "pairwise"):
+        pairwise = pairwise_consistency(
+            sem.caster(), [cams[index[n]] for n in views], [taught[n] for n in views], classes, progress=progress,
+        ) if views else []
 
     _flag(frames, ann, pred, masks, loo_masks, classes)
     # Step 5: the labelled surface
     mesh_info = None
     if mesh_format is not None:
-        mesh_info = export_labelled_mesh(sem, out_dir, mesh_format=mesh_format, mm_per_unit=mm_per_unit).to_dict()
+        with phase(seconds, "mesh", f"report: labelled mesh ({mesh_format})", progress):
+            mesh_info = export_labelled_mesh(sem, out_dir, mesh_format=mesh_format, mm_per_unit=mm_per_unit).to_dict()
     summary = _summary(capture, mode, frames, ann, pred, pairwise, mesh_info)
     for f in frames:
         f.pop("_present")
     report = {"frames": frames, "views": views, "pairwise": pairwise, "summary": summary}
-    figures, strips = _figures(capture, report, ann, pred, masks, loo_masks)
+    with phase(seconds, "figures", "report: figures", progress):
+        figures, strips = _figures(capture, report, ann, pred, masks, loo_masks)
     summary["seconds"] = time.time() - t0
+    summary["phase_seconds"] = seconds
     (out_dir / REPORT_JSON).write_text(json.dumps(report, indent=2))
     (out_dir / REPORT_HTML).write_text(render_html(report, figures, strips), encoding="utf-8")
     return report
