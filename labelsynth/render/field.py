@@ -44,7 +44,8 @@ class SemanticField:
     _mesh: trimesh.Trimesh | None = field(default=None, repr=False)
     _caster: SurfaceCaster | None = field(default=None, repr=False)
     _render_caster: SurfaceCaster | None = field(default=None, repr=False)
-    _vertex_logits: tuple | None = field(default=None, repr=False)  # (head id, logits)
+    _vertex_logits: tuple | None = field(default=None, repr=False)  # (head, logits (V, C), known (V,))
+    _vertex_features: tuple | None = field(default=None, repr=False)  # (features (V, F), known (V,))
 
     # --- surface --------------------------------------------------------------------------
     def mesh(self) -> trimesh.Trimesh:
@@ -68,12 +69,50 @@ class SemanticField:
             self._render_caster = SurfaceCaster(mesh)
         return self._render_caster
 
-    def vertex_logits(self) -> torch.Tensor:
-        """Class logits at the render mesh's vertices, for the current head (cached)."""
+    def vertex_logits(self, vertices: np.ndarray | None = None) -> torch.Tensor:
+        """Class logits at the render mesh's vertices for the current head, (V, C).
+
+        Evaluated lazily: only the ``vertices`` asked for (all when None) that the current head
+        has not seen yet, so a frame costs the vertices it sees, and the report's leave-one-out
+        heads, each rendering one frame, do not pay for the whole mesh. Rows never asked for
+        stay zero. The geometry features at the vertices are cached across heads (the geometry
+        is frozen once the semantic stage starts).
+        """
+        n = len(self.render_caster().mesh.vertices)
         if self._vertex_logits is None or self._vertex_logits[0] is not self.head:
-            verts = np.asarray(self.render_caster().mesh.vertices, dtype=np.float32)
-            self._vertex_logits = (self.head, self.logits_at(verts))
-        return self._vertex_logits[1]
+            logits = torch.zeros(n, self.classes.num_classes, device=self.device)
+            self._vertex_logits = (self.head, logits, np.zeros(n, dtype=bool))
+        _, logits, known = self._vertex_logits
+        wanted = np.arange(n) if vertices is None else np.unique(vertices)
+        todo = wanted[~known[wanted]]
+        if len(todo):
+            logits[torch.from_numpy(todo).to(self.device)] = self._head_at_vertices(todo)
+            known[todo] = True
+        return logits
+
+    @torch.no_grad()
+    def _head_at_vertices(self, todo: np.ndarray) -> torch.Tensor:
+        """The head at render-mesh vertices ``todo``, their geometry features computed once."""
+        assert self.head is not None, "the semantic stage has not been trained"
+        verts = self.render_caster().mesh.vertices
+        n, fdim = len(verts), self.sdf.cfg.feature_dim
+        if self._vertex_features is None:
+            self._vertex_features = (torch.zeros(n, fdim, device=self.device), np.zeros(n, dtype=bool))
+        feats, known = self._vertex_features
+        new = todo[~known[todo]]
+        chunk = self.recipe.render.chunk
+        for s in range(0, len(new), chunk):
+            idx = new[s : s + chunk]
+            pts = torch.as_tensor(np.asarray(verts[idx], dtype=np.float32), device=self.device)
+            feats[torch.from_numpy(idx).to(self.device)] = self.sdf.get_sdf(pts)[1]
+        known[new] = True
+        self.head.eval()
+        out = []
+        for s in range(0, len(todo), chunk):
+            idx = todo[s : s + chunk]
+            pts = torch.as_tensor(np.asarray(verts[idx], dtype=np.float32), device=self.device)
+            out.append(self.head(feats[torch.from_numpy(idx).to(self.device)], pts))
+        return torch.cat(out)
 
     # --- semantics ------------------------------------------------------------------------
     @torch.no_grad()
@@ -108,7 +147,7 @@ class SemanticField:
                 # one head evaluation per vertex instead of one per pixel of every frame.
                 tri = np.asarray(caster.mesh.faces)[faces[hit]]
                 bary = trimesh.triangles.points_to_barycentric(np.asarray(caster.mesh.triangles)[faces[hit]], points[hit])
-                vl = self.vertex_logits()
+                vl = self.vertex_logits(tri.ravel())
                 logits = (vl[torch.from_numpy(tri).to(vl.device)] * torch.from_numpy(bary).to(vl)[..., None]).sum(1)
             probs[hit] = torch.softmax(logits, dim=-1).cpu().numpy()
         index = decide_labels(probs, self.classes, self.recipe.render.decision)
