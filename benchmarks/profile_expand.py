@@ -9,7 +9,8 @@ leave-one-out refits count as report time). Prints each stage's wall time and wh
 it went to the parts the speed work cares about: the hash-grid encoding (forward gathers,
 hand-written backward), the MLPs, the rest of autograd's backward (eikonal second derivatives,
 MLP backward), ray marching and the occupancy grid, the outer background, the optimiser,
-dropout, ray casting and marching cubes, writing, and Python itself. cProfile adds a little
+dropout, ray casting and marching cubes, writing, and the own time of Python functions
+(which includes tensor arithmetic written as operators: cProfile does not see it apart). cProfile adds a little
 overhead of its own, so read shares, and take wall times from run.json of a plain run.
 """
 
@@ -71,7 +72,7 @@ def _parts(stats: pstats.Stats) -> dict[str, float]:
                 total += cumtime if which == "cum" else tottime
         if total > 0:
             out[label] = total
-    out["Python itself (own time of every Python function)"] = python_own
+    out["own time of Python functions (incl. tensor arithmetic written as operators)"] = python_own
     return out
 
 
