@@ -70,6 +70,7 @@ class RayBank:
         self.rgb = torch.from_numpy(np.concatenate(rgbs)).to(device)
         self.device = device
         self.border_rgb = border_colour(small)
+        self.mean_rgb = self.rgb.mean(0).cpu().numpy()  # what the images show on average
 
     def __len__(self) -> int:
         return self.origins.shape[0]
