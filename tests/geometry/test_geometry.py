@@ -33,6 +33,23 @@ def test_encoding_fast_path_matches_autograd_and_finite_differences():
     assert torch.allclose(per_point, fd, atol=1e-5)
 
 
+def test_encoding_fast_path_in_float32_matches_autograd():
+    # float32 with two features per level takes the paired gather/scatter (8-byte rows,
+    # complex64 scatter); it must give autograd's values and gradients
+    torch.manual_seed(1)
+    enc = HashGridEncoding(levels=6, log2_table=10, base_resolution=4, max_resolution=64)
+    enc.table.data.normal_()
+    x = (torch.rand(500, 3) * 2.2 - 1.1).requires_grad_(True)  # some outside: clamped
+    weights = torch.randn(500, enc.output_dim)
+    fast = enc(x)
+    slow = enc(x, twice_differentiable=True)
+    g_fast = torch.autograd.grad((fast * weights).sum(), [x, enc.table])
+    g_slow = torch.autograd.grad((slow * weights).sum(), [x, enc.table])
+    assert torch.allclose(fast, slow, atol=1e-6)
+    assert torch.allclose(g_fast[0], g_slow[0], atol=1e-4)
+    assert torch.allclose(g_fast[1], g_slow[1], atol=1e-5)
+
+
 def test_encoding_is_twice_differentiable_for_the_eikonal_loss():
     enc = HashGridEncoding(levels=4, log2_table=10, base_resolution=4, max_resolution=32)
     enc.table.data.normal_()
