@@ -14,6 +14,7 @@ import torch
 from torch.nn import functional as F
 
 from ..cameras import Camera
+from ..device import optimiser_options
 from ..progress import make_progress
 from .sampling import (
     OccupancyGrid,
@@ -127,7 +128,8 @@ def _geometry_optimiser(sdf: SDFField, cfg: GeometryConfig):
         {"params": [p for n, p in sdf.named_parameters() if n != "encoding.table" and n != "variance"], "lr": cfg.lr},
         {"params": [sdf.variance], "lr": cfg.lr},
     ]
-    opt = torch.optim.Adam(params, betas=(cfg.adam_beta1, cfg.adam_beta2), eps=cfg.adam_eps)
+    opt = torch.optim.Adam(params, betas=(cfg.adam_beta1, cfg.adam_beta2), eps=cfg.adam_eps,
+                           **optimiser_options(sdf.variance.device))
     gamma = cfg.lr_final_factor ** (1.0 / max(cfg.iterations, 1))
     warmup = max(cfg.warmup_iterations, 1)
     sched = torch.optim.lr_scheduler.LambdaLR(opt, lambda it: min(1.0, (it + 1) / warmup) * gamma**it)

@@ -14,6 +14,7 @@ import torch
 from torch.nn import functional as F
 
 from ..cameras import Camera
+from ..device import optimiser_options
 from ..classes import ClassMap
 from ..errors import LabelsynthError
 from ..geometry.encoding import HashGridEncoding
@@ -245,7 +246,8 @@ def train_semantic(
     scheme = resolve_class_weighting(cfg.class_weighting, baked.expert_only)
     cw = class_weights(baked.class_counts, classes, cfg.background_weight, cfg.tissue_weight_floor, scheme)
     class_w = torch.from_numpy(cw).to(device)
-    opt = torch.optim.Adam(head.parameters(), lr=cfg.lr, betas=(cfg.adam_beta1, cfg.adam_beta2), eps=cfg.adam_eps)
+    opt = torch.optim.Adam(head.parameters(), lr=cfg.lr, betas=(cfg.adam_beta1, cfg.adam_beta2), eps=cfg.adam_eps,
+                           **optimiser_options(device))
     batch = min(cfg.rays_per_batch, len(baked))
     iterations = semantic_iterations(cfg, len(baked))
     sched = torch.optim.lr_scheduler.CosineAnnealingLR(opt, T_max=max(iterations, 1), eta_min=cfg.lr * cfg.lr_final_factor)

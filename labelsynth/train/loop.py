@@ -23,7 +23,7 @@ import torch.nn.functional as F
 
 from .. import __version__
 from ..classes import IGNORE_ID, ClassMap
-from ..device import pick_device
+from ..device import optimiser_options, pick_device
 from ..outdir import atomic_file, write_text_atomic
 from ..progress import console, make_progress
 from .data import (FrameDataset, Split, TrainError, load_sources, make_target, normalize_image,
@@ -307,7 +307,7 @@ def train(sources: list[str | Path], out: str | Path, cfg: TrainConfig | None = 
     device = pick_device(cfg.device)
     torch.manual_seed(cfg.seed)
     model = build_model(cfg.arch, cfg.encoder, classes.num_classes).to(device)
-    optimizer = torch.optim.AdamW(model.parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay)
+    optimizer = torch.optim.AdamW(model.parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay, **optimiser_options(device))
     step, history, resumed_from = 0, [], None
     if state is not None:
         try:
