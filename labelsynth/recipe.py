@@ -194,6 +194,8 @@ def load_recipe(name_or_path: str | Path = "default", overrides: list[str] | Non
     _check_choices(recipe, path.name)
     if not 0.0 < recipe.report.loo_fraction <= 1.0:
         raise RecipeError(f"{path.name}.report.loo_fraction: {recipe.report.loo_fraction} is not in (0, 1]")
+    if not 0.0 <= recipe.semantic.dropout < 1.0:
+        raise RecipeError(f"{path.name}.semantic.dropout: {recipe.semantic.dropout} is not in [0, 1)")
     return recipe
 
 

@@ -16,6 +16,23 @@ from ..classes import ClassMap
 from ..geometry.encoding import HashGridEncoding
 
 
+class ThresholdDropout(nn.Module):
+    """Inverted dropout from a uniform draw compared with ``p``: the same distribution as
+    ``nn.Dropout``, about twice as fast on CPU, where torch's Bernoulli sampling is a
+    sixth of the semantic stage's time (README, Speed)."""
+
+    def __init__(self, p: float = 0.5) -> None:
+        super().__init__()
+        if not 0.0 <= p < 1.0:
+            raise ValueError(f"dropout probability must be in [0, 1), got {p}")
+        self.p = float(p)
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        if not self.training or self.p == 0.0:
+            return x
+        return x * ((torch.rand_like(x) >= self.p) * (1.0 / (1.0 - self.p)))
+
+
 class SemanticHead(nn.Module):
     """geometry feature (+ position code) -> per-class logits, dropout before the last layer."""
 
@@ -36,7 +53,7 @@ class SemanticHead(nn.Module):
             nn.Linear(hidden, hidden),
             nn.ReLU(inplace=True),
         )
-        self.dropout = nn.Dropout(dropout)
+        self.dropout = ThresholdDropout(dropout)
         self.out = nn.Linear(hidden, num_classes)
 
     def forward(self, feature: torch.Tensor, positions: torch.Tensor) -> torch.Tensor:

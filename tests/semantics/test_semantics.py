@@ -145,3 +145,27 @@ def test_frames_without_labels_contribute_no_rays():
     assert baked_e.expert_only and resolve_class_weighting("auto", baked_e.expert_only) == "equal-tissue"
     assert baked_e.without({"e0"}).expert_only and len(baked_e.without({"e0"})) == 64
     assert resolve_class_weighting("paper", True) == "paper"
+
+
+def test_threshold_dropout_keeps_the_mean_drops_p_and_is_off_in_eval():
+    import torch
+
+    from labelsynth.semantics.head import ThresholdDropout
+
+    torch.manual_seed(0)
+    drop = ThresholdDropout(0.5)
+    x = torch.ones(200_000)
+    y = drop.train()(x)
+    assert abs(float((y == 0).float().mean()) - 0.5) < 0.01
+    assert abs(float(y.mean()) - 1.0) < 0.02 and set(torch.unique(y).tolist()) == {0.0, 2.0}
+    assert torch.equal(drop.eval()(x), x)
+
+
+def test_a_dropout_of_one_or_more_is_a_one_line_recipe_error():
+    import pytest
+
+    from labelsynth.errors import RecipeError
+    from labelsynth.recipe import load_recipe
+
+    with pytest.raises(RecipeError, match=r"semantic.dropout: 1.0 is not in \[0, 1\)"):
+        load_recipe("fast", ["semantic.dropout=1.0"])
