@@ -4,7 +4,8 @@
     python benchmarks/bench_expand.py --capture /tmp/bench50/capture --truth /tmp/bench50/truth \
         --labels annotations --recipe default --out /tmp/bench50/out-default
 
-Prints Dice/recall per class and for the wound bed on the frames that were not annotated and,
+The report is built as `expand` builds it (``--no-report`` for masks only); its steps' times and
+the frames it flags are printed. Prints Dice/recall per class and for the wound bed on the frames that were not annotated and,
 with --labels predictions, the same for the automatic predictions themselves (the "2D" row).
 Each configuration is one process, so the peak memory printed is that run's own.
 """
@@ -36,6 +37,8 @@ def main() -> None:
     ap.add_argument("--set", dest="overrides", action="append", default=[])
     ap.add_argument("--out", type=Path)
     ap.add_argument("--device", default="auto")
+    ap.add_argument("--report", action=argparse.BooleanOptionalAction, default=True,
+                    help="build the consistency report as `expand` does by default (--no-report: masks only)")
     args = ap.parse_args()
 
     if args.synth:
@@ -53,7 +56,7 @@ def main() -> None:
     out = args.out or args.capture.parent / f"out-{args.recipe}-{args.labels}"
     t0 = time.time()
     result = expand(args.capture, out, labels=args.labels, recipe=args.recipe, device=args.device,
-                    overrides=args.overrides, force=True, progress=False, report=False)
+                    overrides=args.overrides, force=True, progress=False, report=args.report)
     wall = time.time() - t0
     peak_gb = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024**2
     cap = load_capture(args.capture)
@@ -68,6 +71,14 @@ def main() -> None:
 
     print(f"recipe={args.recipe} labels={args.labels} frames={len(result.frames)} scored={len(result.frames) - len(annotated)}")
     print(f"wall {wall:.0f} s (" + ", ".join(f"{k} {v:.0f} s" for k, v in result.seconds.items()) + f"), peak RSS {peak_gb:.2f} GB")
+    if args.report:
+        run = json.loads((out / "run.json").read_text())
+        report = json.loads((out / "report.json").read_text())
+        phases = run.get("report_seconds", {})
+        print("report: " + ", ".join(f"{k} {v:.1f} s" for k, v in phases.items()))
+        flagged = report["summary"]["flagged"]
+        loo = report["summary"]["median_loo_dice"].get("wound_bed")
+        print(f"report flags: {', '.join(flagged) if flagged else 'none'}; median leave-one-out wound-bed Dice {loo}")
     print(f"{'method':18s} {'class':12s} {'dice':>6s} {'recall':>6s} {'n':>3s}")
     for method, table in rows.items():
         for row in table:
@@ -76,7 +87,7 @@ def main() -> None:
             print(f"{method:18s} {row['class']:12s} {row['dice']:6.3f} {row['recall']:6.3f} {row['n']:3d}")
     (out / "bench_expand.json").write_text(json.dumps(
         {"wall_s": wall, "peak_rss_gb": peak_gb, "seconds": result.seconds, "rows": rows,
-         "recipe": args.recipe, "labels": args.labels}, indent=2, default=float))
+         "recipe": args.recipe, "labels": args.labels, "report": args.report}, indent=2, default=float))
 
 
 if __name__ == "__main__":
