@@ -238,7 +238,7 @@ def main() -> None:
     ap.add_argument("--arms", default="abcd")
     ap.add_argument("--arch", default="segformer")
     ap.add_argument("--encoder", default=None)
-    ap.add_argument("--steps", type=int, default=120)
+    ap.add_argument("--steps", type=int, default=1000)
     ap.add_argument("--batch-size", type=int, default=4)
     ap.add_argument("--crop", type=int, default=192)
     ap.add_argument("--lr", type=float, default=6e-4)
