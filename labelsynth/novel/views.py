@@ -87,6 +87,8 @@ class RealFrames:
         self.depth = [torch.from_numpy(np.where(np.isfinite(d), d, FAR * 10).astype(np.float32)) for d in depth]
         self.centers = np.stack([c.center for c in self.cameras])
         self.forwards = np.stack([c.forward for c in self.cameras])
+        self._centres_t = torch.from_numpy(self.centers.astype(np.float32))
+        self._rotations_t = torch.from_numpy(np.stack([c.w2c[:3, :3] for c in self.cameras]).astype(np.float32))
 
     def depth_map(self, camera: Camera) -> np.ndarray:
         """(H,W) float32 distance to the fitted surface along each pixel's ray, inf on a miss."""
@@ -110,24 +112,27 @@ class RealFrames:
         return order[:k]
 
     # --- looking points up ---------------------------------------------------------------------
-    def _project(self, j: int, points: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-        """(grid coords (P,2) for grid_sample, in-frame (P,), distance from frame j's centre (P,))
-        of unit-cube points (P,3); torch for speed, ``Camera.project`` where there is distortion."""
+    def _project(self, j: int, points: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+        """(grid coords (P,2) for grid_sample, in-frame (P,), distance from frame j's centre (P,),
+        offset from that centre (P,3)) of unit-cube points (P,3); torch for speed,
+        ``Camera.project`` where there is distortion."""
         cam = self.cameras[j]
+        rel = points - self._centres_t[j]
+        dist = rel.norm(dim=-1)
         if cam.is_distorted:
             pix_np, z_np = cam.project(points.double().numpy())
             pix, z = torch.from_numpy(pix_np).float(), torch.from_numpy(z_np).float()
+            gx, gy = 2 * pix[:, 0] / cam.width - 1, 2 * pix[:, 1] / cam.height - 1
         else:
-            w2c = torch.from_numpy(cam.w2c).float()
-            pc = points @ w2c[:3, :3].T + w2c[:3, 3]
+            pc = rel @ self._rotations_t[j].T  # camera axes (OpenGL: the camera looks down -z)
             z = -pc[:, 2]
-            safe = torch.where(z.abs() < 1e-9, torch.full_like(z, 1e-9), z)
-            pix = torch.stack([cam.fx * pc[:, 0] / safe + cam.cx, cam.fy * -pc[:, 1] / safe + cam.cy], -1)
-        dist = (points - torch.from_numpy(cam.center).float()).norm(dim=-1)
-        inside = (z > 1e-6) & (pix[:, 0] >= 0) & (pix[:, 0] < cam.width) & (pix[:, 1] >= 0) & (pix[:, 1] < cam.height)
-        grid = torch.stack([2 * pix[:, 0] / cam.width - 1, 2 * pix[:, 1] / cam.height - 1], -1)
-        grid = torch.where(inside[:, None], grid, torch.zeros_like(grid))
-        return grid, inside, dist
+            inv = 1.0 / torch.where(z.abs() < 1e-9, torch.full_like(z, 1e-9), z)
+            # pixel x = fx * X / z + cx, y = -fy * Y / z + cy, then to grid_sample's [-1, 1]
+            gx = pc[:, 0] * inv * (2 * cam.fx / cam.width) + (2 * cam.cx / cam.width - 1)
+            gy = pc[:, 1] * inv * (-2 * cam.fy / cam.height) + (2 * cam.cy / cam.height - 1)
+        inside = (z > 1e-6) & (gx >= -1) & (gx < 1) & (gy >= -1) & (gy < 1)
+        grid = torch.stack([gx, gy], -1) * inside[:, None]
+        return grid, inside, dist, rel
 
     def _sample(self, j: int, grid: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """Frame j's colour (bilinear, (P,3)) and depth (nearest, (P,)) at grid coordinates."""
@@ -150,12 +155,12 @@ class RealFrames:
         cost = torch.full((len(frames), p), float("inf"))
         colours = torch.zeros(len(frames), p, 3)
         for k, j in enumerate(frames):
-            grid, inside, dist = self._project(j, pts)
+            grid, inside, dist, rel = self._project(j, pts)
             rgb, depth = self._sample(j, grid)
             footprint = 3.0 * dist / self.cameras[j].fx
             visible = inside & ((depth - dist).abs() < cfg.depth_tolerance * dist + footprint)
-            ray = (pts - torch.from_numpy(self.cameras[j].center).float()) / dist.clamp_min(1e-6)[:, None]
-            angle = torch.rad2deg(torch.arccos((ray * view).sum(-1).clamp(-1, 1)))
+            cos = (rel * view).sum(-1) / dist.clamp_min(1e-6)
+            angle = torch.rad2deg(torch.arccos(cos.clamp(-1, 1)))
             farther = (dist / eye_dist - 1.0).clamp_min(0) * 100.0 * cfg.far_resolution
             cost[k] = torch.where(visible, angle + farther, torch.full_like(angle, float("inf")))
             colours[k] = rgb
@@ -173,7 +178,7 @@ class RealFrames:
         colours = torch.zeros(len(frames), p, 3)
         for k, j in enumerate(frames):
             cam = self.cameras[j]
-            grid, inside, _ = self._project(j, torch.from_numpy(cam.center).float() + FAR * d)
+            grid, inside, _, _ = self._project(j, self._centres_t[j] + FAR * d)
             rgb, depth = self._sample(j, grid)
             empty = inside & (depth >= FAR)  # that frame's ray in this direction misses the surface too
             gap = float(np.linalg.norm(cam.center - eye))
