@@ -193,7 +193,10 @@ def retrain(root: Path, out: Path, args) -> dict:
     from labelsynth.capture.masks import read_mask
     from labelsynth.evaluation.metrics import score_frames
     from labelsynth.evaluation.segment import segment_capture
+    from labelsynth.classes import ClassMap
     from labelsynth.train import TrainConfig, train
+
+    classes = ClassMap.default()
 
     aug = out / "augment" / "augment.h5"
     if not aug.exists():
@@ -205,24 +208,29 @@ def retrain(root: Path, out: Path, args) -> dict:
         model = root / "models" / arm.replace("+", "_")
         cfg = TrainConfig(steps=args.steps, val_captures=[str(val)], eval_every=max(1, args.steps // 4), device="cpu",
                           seed=0)
-        t0 = time.perf_counter()
-        tr = train([*sources, val], model, cfg, force=True, progress=False)
-        train_s = time.perf_counter() - t0
+        done = model / "train.json"
+        if (model / "model.onnx").exists() and done.exists() and \
+                json.loads(done.read_text())["arguments"].get("steps") == args.steps and not args.retrain:
+            record = json.loads(done.read_text())  # this arm's model from an earlier run, same steps
+            train_frames, train_s = record["split"]["train_frames"], record["times"]["train_s"]
+            log(f"retrain [{arm}]: reusing {model} (--retrain redoes it)")
+        else:
+            t0 = time.perf_counter()
+            tr = train([*sources, val], model, cfg, force=True, progress=False)
+            train_s, train_frames = time.perf_counter() - t0, tr.train_frames
         preds, truths, names = [], [], []
         for t in tests:
             seg = root / "segment" / arm.replace("+", "_") / t.name
             segment_capture(t / "capture", model / "model.onnx", seg, device="cpu", progress=False)
             for p in sorted(seg.glob("*.png")):
-                preds.append(read_mask(p, None))
-                truths.append(read_mask(t / "truth" / p.name, None))
+                preds.append(read_mask(p, None, classes))
+                truths.append(read_mask(t / "truth" / p.name, None, classes))
                 names.append(f"{t.name}/{p.stem}")
-        from labelsynth.classes import ClassMap
-
-        scores = score_frames(preds, truths, ClassMap.default(), names)
+        scores = score_frames(preds, truths, classes, names)
         rows = {r["class"]: r for r in scores.table()}
-        res[arm] = {"train_frames": tr.train_frames, "steps": args.steps, "train_s": train_s,
+        res[arm] = {"train_frames": train_frames, "steps": args.steps, "train_s": train_s,
                     "test_frames": len(preds), "classes": rows}
-        log(f"retrain [{arm}]: {tr.train_frames} training frames, {train_s:.0f} s; held-out "
+        log(f"retrain [{arm}]: {train_frames} training frames, {train_s:.0f} s; held-out "
             + scores.summary_line())
     return res
 
@@ -275,6 +283,7 @@ def main() -> None:
     ap.add_argument("--dice-views", type=int, default=20)
     ap.add_argument("--views", type=int, default=200)
     ap.add_argument("--steps", type=int, default=300)
+    ap.add_argument("--retrain", action="store_true", help="retrain: redo models that exist with the same steps")
     ap.add_argument("--val-seed", type=int, default=50)
     ap.add_argument("--test-seeds", type=lambda s: [int(x) for x in s.split(",")], default=[51, 52])
     ap.add_argument("--test-frames", type=int, default=12)
