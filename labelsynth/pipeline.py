@@ -10,7 +10,6 @@ import json
 import math
 import shutil
 import time
-from collections.abc import Callable
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 
@@ -35,6 +34,7 @@ from .semantics.training import (
     LabelledFrame,
     bake_semantic_rays,
     make_semantic_head,
+    train_leave_one_out,
     train_semantic,
 )
 
@@ -308,24 +308,52 @@ def expand(
     )
 
 
-def refit_without(sem: SemanticField, capture: Capture, mode: str, seed: int = 0) -> Callable[[str], None]:
-    """The report's leave-one-view-out: retrain a fresh head without one frame, geometry frozen,
-    for ``report.loo_fraction`` of the semantic stage's steps.
+class LeaveOneOutRefit:
+    """The report's leave-one-view-out: ``refit(name)`` puts in ``sem.head`` a fresh head trained
+    without that frame, geometry frozen, for ``report.loo_fraction`` of the semantic stage's steps.
 
-    Reuses the full fit's baked rays minus that frame's when they are there (no re-sampling),
-    else bakes the remaining frames' labels afresh.
+    ``prepare(names)`` trains the heads of all the named frames at once on the full fit's baked
+    rays (``semantics.training.train_leave_one_out``: one batch and one position lookup per step
+    for all of them); a name not prepared is refitted alone, re-baking the other frames' labels
+    when the full fit's rays are not there (a field loaded from disk).
     """
 
-    fraction = sem.recipe.report.loo_fraction
+    def __init__(self, sem: SemanticField, capture: Capture, mode: str, seed: int = 0) -> None:
+        self.sem, self.capture, self.mode, self.seed = sem, capture, mode, seed
+        self.fraction = sem.recipe.report.loo_fraction
+        self.heads: dict = {}
 
-    def refit(name: str) -> None:
-        if sem.baked is not None:
-            fit_semantics(sem, [], exclude={name}, baked=sem.baked, seed=seed, progress=False, steps_fraction=fraction)
+    def _config(self):
+        cfg = self.sem.recipe.semantic
+        return replace(cfg, iterations=max(1, math.ceil(cfg.iterations * self.fraction)),
+                       min_epochs=cfg.min_epochs * self.fraction)
+
+    def prepare(self, names: list[str], progress: bool = False) -> None:
+        sem = self.sem
+        todo = [n for n in names if n not in self.heads]
+        if sem.baked is None or not todo:
+            return
+        if any(len(sem.baked.without({n})) == 0 for n in todo):
+            return  # refit alone, which says which frame left nothing
+        cfg = self._config()
+        self.heads.update(train_leave_one_out(lambda: make_semantic_head(sem.sdf, sem.classes, cfg), sem.baked,
+                                              sem.classes, cfg, todo, seed=self.seed, progress=progress))
+
+    def __call__(self, name: str) -> None:
+        sem = self.sem
+        if name in self.heads:
+            sem.head = self.heads.pop(name)
+        elif sem.baked is not None:
+            fit_semantics(sem, [], exclude={name}, baked=sem.baked, seed=self.seed, progress=False,
+                          steps_fraction=self.fraction)
         else:
-            fit_semantics(sem, labelled_frames(capture, mode, sem.recipe, exclude={name}), seed=seed, progress=False,
-                          steps_fraction=fraction)
+            fit_semantics(sem, labelled_frames(self.capture, self.mode, sem.recipe, exclude={name}), seed=self.seed,
+                          progress=False, steps_fraction=self.fraction)
 
-    return refit
+
+def refit_without(sem: SemanticField, capture: Capture, mode: str, seed: int = 0) -> LeaveOneOutRefit:
+    """The report's refit callable (``LeaveOneOutRefit``)."""
+    return LeaveOneOutRefit(sem, capture, mode, seed)
 
 
 def _report(out: Path, capture: Capture, sem: SemanticField, masks: dict[str, np.ndarray], mode: str, *,

@@ -9,6 +9,7 @@ gradient), and it runs the same on CPU and CUDA. Coarse levels that fit are stor
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass
 
 import torch
 from torch import nn
@@ -48,6 +49,7 @@ class HashGridEncoding(nn.Module):
             offsets.append(offsets[-1] + s)
         self.register_buffer("resolutions", torch.tensor(resolutions, dtype=torch.float32), persistent=False)
         self.register_buffer("table_sizes", torch.tensor(sizes, dtype=torch.long), persistent=False)
+        self.layout = (base_resolution, max_resolution, tuple(sizes))  # what a shared lookup must match
         self.register_buffer("offsets", torch.tensor(offsets[:-1], dtype=torch.long), persistent=False)
         self.register_buffer("dense", torch.tensor(dense, dtype=torch.bool), persistent=False)
         self.active_levels = levels
@@ -117,17 +119,32 @@ class HashGridEncoding(nn.Module):
             out = torch.cat([out, out.new_zeros(n, (self.levels - L) * self.features_per_level)], dim=-1)
         return out
 
-    def forward(self, x: torch.Tensor, twice_differentiable: bool = False) -> torch.Tensor:
+    @torch.no_grad()
+    def lookup(self, x: torch.Tensor) -> "GridLookup":
+        """Where points fall in the grid: corner indices and trilinear weights, which depend only
+        on the points and the grid's layout, not on the table. Encodings with the same layout
+        (the report's leave-one-out heads) can share one lookup of the same points."""
+        idx, frac, inside = self._lookup(x)
+        w_axis, w = _corner_weights(frac, self.corner_bits)
+        return GridLookup(idx, w_axis, w, inside, self.active_levels, self.layout)
+
+    def forward(self, x: torch.Tensor, twice_differentiable: bool = False,
+                lookup: "GridLookup | None" = None) -> torch.Tensor:
         """x: (N, 3) in [-1, 1]^3 (clamped) -> (N, levels * features).
 
         The default path has a hand-written backward (first derivatives with respect to x and
         the table: several times faster on CPU than autograd through the gathers). With
         ``twice_differentiable`` the same values come from plain autograd ops, which the
-        eikonal loss needs for its second derivatives.
+        eikonal loss needs for its second derivatives. ``lookup``: ``self.lookup(x)`` computed
+        before (by this encoding or one with the same layout), to skip the index math.
         """
         if twice_differentiable:
             return self._forward_autograd(x)
-        return _HashInterp.apply(x, self.table, self)
+        if lookup is None:
+            lookup = self.lookup(x)
+        elif lookup.levels != self.active_levels or lookup.layout != self.layout:
+            raise ValueError("the lookup was made for a hash grid of another layout")
+        return _HashInterp.apply(x, self.table, self, lookup)
 
     def _forward_autograd(self, x: torch.Tensor) -> torch.Tensor:
         n, L = x.shape[0], self.active_levels
@@ -164,15 +181,26 @@ def _scatter_rows(values: torch.Tensor, index: torch.Tensor, rows: int) -> torch
     return values.new_zeros(rows, values.shape[1]).index_add_(0, index, values)
 
 
+@dataclass(frozen=True)
+class GridLookup:
+    """``HashGridEncoding.lookup``: per point and level, the 8 corners' table rows and weights."""
+
+    idx: torch.Tensor  # (N, L, 8) rows of the table
+    w_axis: torch.Tensor  # (N, L, 3, 2) per-axis weights
+    w: torch.Tensor  # (N, L, 8) trilinear corner weights
+    inside: torch.Tensor  # (N, 3) not clamped (the gradient with respect to x is zero outside)
+    levels: int
+    layout: tuple  # HashGridEncoding.layout of the encoding that made it
+
+
 class _HashInterp(torch.autograd.Function):
     """Trilinear hash-grid interpolation with an explicit first-order backward."""
 
     @staticmethod
-    def forward(ctx, x: torch.Tensor, table: torch.Tensor, enc: HashGridEncoding) -> torch.Tensor:
+    def forward(ctx, x: torch.Tensor, table: torch.Tensor, enc: HashGridEncoding, lookup: GridLookup) -> torch.Tensor:
         n, L, F = x.shape[0], enc.active_levels, enc.features_per_level
         with torch.no_grad():
-            idx, frac, inside = enc._lookup(x)
-            w_axis, w = _corner_weights(frac, enc.corner_bits)
+            idx, w_axis, w, inside = lookup.idx, lookup.w_axis, lookup.w, lookup.inside
             feats = _gather_rows(table, idx.reshape(-1)).reshape(n, L, 8, F)
             out = torch.einsum("nlc,nlcf->nlf", w, feats)
         ctx.save_for_backward(idx, w_axis, w, feats, inside)
@@ -202,7 +230,7 @@ class _HashInterp(torch.autograd.Function):
             gz = (dz * wx[..., :, None] * wy[..., None, :]).sum((-1, -2))
             grad_pos = torch.stack([gx, gy, gz], dim=-1)  # (N, L, 3): d/d(pos) per level
             grad_x = (grad_pos * enc.resolutions[:L][None, :, None]).sum(1) * 0.5 * inside.to(g.dtype)
-        return grad_x, grad_table, None
+        return grad_x, grad_table, None, None
 
 
 def sh_deg2(d: torch.Tensor) -> torch.Tensor:

@@ -170,6 +170,9 @@ def leave_one_out(
     full_head = sem.head
     out: dict[str, np.ndarray] = {}
     try:
+        prepare = getattr(refit, "prepare", None)
+        if prepare is not None and names:  # heads trained together (pipeline.LeaveOneOutRefit)
+            prepare(list(names), progress=progress)
         for name in track(list(names), "leave-one-view-out", enabled=progress):
             refit(name)
             out[name] = sem.render(cams[index[name]]).mask

@@ -56,10 +56,11 @@ class SemanticHead(nn.Module):
         self.dropout = ThresholdDropout(dropout)
         self.out = nn.Linear(hidden, num_classes)
 
-    def forward(self, feature: torch.Tensor, positions: torch.Tensor) -> torch.Tensor:
+    def forward(self, feature: torch.Tensor, positions: torch.Tensor, lookup=None) -> torch.Tensor:
+        """``lookup``: the position encoding's ``lookup(positions)``, when several heads share it."""
         h = feature
         if self.position_encoding is not None:
-            h = torch.cat([h, self.position_encoding(positions)], dim=-1)
+            h = torch.cat([h, self.position_encoding(positions, lookup=lookup)], dim=-1)
         return self.out(self.dropout(self.body(h)))
 
 

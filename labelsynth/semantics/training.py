@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import math
 import time
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
@@ -271,12 +271,87 @@ def train_semantic(
     return SemanticStats(iterations, time.time() - t0, loss_ema, len(baked), cw.tolist(), scheme)
 
 
+def train_leave_one_out(
+    make_head: Callable[[], SemanticHead],
+    baked: BakedRays,
+    classes: ClassMap,
+    cfg: SemanticConfig,
+    names: Sequence[str],
+    *,
+    seed: int = 0,
+    progress: bool = False,
+) -> dict[str, SemanticHead]:
+    """One fresh head per named frame, each trained without that frame's rays, all in one loop.
+
+    What ``train_semantic`` on ``baked.without({name})`` does for each name in turn, but the
+    heads share each step's batch (a head's loss skips the rays of its own frame) and, their
+    position encodings having one layout, the encoding's index math: that and the batch are
+    most of a step that is not the heads' own arithmetic. Each head has its own class
+    weights (from the other frames' label counts) and its own Adam state (one optimiser over
+    all heads is per parameter), and runs as many steps as the longest of the separate runs.
+    """
+    device = baked.positions.device
+    frame_index = {n: i for i, n in enumerate(baked.frame_names)}
+    missing = [n for n in names if n not in frame_index]
+    if missing:
+        raise LabelsynthError("leave-one-out: no baked rays for " + ", ".join(missing))
+    heads = {}
+    for name in names:
+        torch.manual_seed(seed)  # every head starts where a separate refit's head would
+        heads[name] = make_head().train()
+    scheme = resolve_class_weighting(cfg.class_weighting, baked.expert_only)
+    class_w, left_out, iterations = [], [], 0
+    for name in names:
+        j = frame_index[name]
+        other = np.delete(baked.frame_class_counts, j, axis=0).sum(0)
+        class_w.append(torch.from_numpy(class_weights(other, classes, cfg.background_weight,
+                                                      cfg.tissue_weight_floor, scheme)).to(device))
+        left_out.append(j)
+        rays = int((baked.frame_of_ray != j).sum())
+        iterations = max(iterations, semantic_iterations(cfg, rays))
+    params = [p for head in heads.values() for p in head.parameters()]
+    opt = torch.optim.Adam(params, lr=cfg.lr, betas=(cfg.adam_beta1, cfg.adam_beta2), eps=cfg.adam_eps,
+                           **optimiser_options(device))
+    sched = torch.optim.lr_scheduler.CosineAnnealingLR(opt, T_max=max(iterations, 1), eta_min=cfg.lr * cfg.lr_final_factor)
+    gen = torch.Generator(device=device).manual_seed(seed + 1)
+    batch = min(cfg.rays_per_batch, len(baked))
+    bg_idx = classes.background_index
+    with make_progress(progress) as bar:
+        task = bar.add_task(f"leave-one-view-out: {len(heads)} heads", total=iterations, status="")
+        for _ in range(iterations):
+            _joint_step(heads, class_w, left_out, baked, batch, bg_idx, gen, opt)
+            sched.step()
+            bar.update(task, advance=1)
+    for head in heads.values():
+        head.eval()
+    return heads
+
+
+def _joint_step(heads: dict, class_w: list, left_out: list, baked: BakedRays, batch: int, bg_idx: int,
+                gen: torch.Generator, opt: torch.optim.Optimizer) -> None:
+    """One step of ``train_leave_one_out``: one batch, one position lookup, every head's loss."""
+    first = next(iter(heads.values()))
+    idx = torch.randint(0, len(baked), (batch,), device=baked.positions.device, generator=gen)
+    pos, feat, w = baked.positions[idx], baked.features[idx], baked.weights[idx]
+    labels, ray_w, frames = baked.labels[idx], baked.ray_weight[idx], baked.frame_of_ray[idx]
+    lookup = first.position_encoding.lookup(pos.reshape(-1, 3)) if first.position_encoding is not None else None
+    loss = 0.0
+    for head, cw, j in zip(heads.values(), class_w, left_out):
+        logits = rendered_logits(head, pos, feat, w, bg_idx, lookup)
+        loss = loss + weighted_cross_entropy(logits, labels, cw, ray_w * (frames != j))
+    opt.zero_grad(set_to_none=True)
+    loss.backward()
+    opt.step()
+
+
 def rendered_logits(
-    head: SemanticHead, positions: torch.Tensor, features: torch.Tensor, weights: torch.Tensor, background_index: int
+    head: SemanticHead, positions: torch.Tensor, features: torch.Tensor, weights: torch.Tensor, background_index: int,
+    lookup=None,
 ) -> torch.Tensor:
-    """Volume-rendered logits of K cached samples per ray; the unabsorbed rest is background."""
+    """Volume-rendered logits of K cached samples per ray; the unabsorbed rest is background.
+    ``lookup``: the position encoding's lookup of ``positions`` (R*K points), when shared."""
     r, k, _ = positions.shape
-    per_sample = head(features.reshape(r * k, -1), positions.reshape(r * k, 3)).reshape(r, k, -1)
+    per_sample = head(features.reshape(r * k, -1), positions.reshape(r * k, 3), lookup).reshape(r, k, -1)
     logits = (weights[..., None] * per_sample).sum(1)
     rest = (1.0 - weights.sum(1)).clamp(0.0, 1.0)
     bg = torch.zeros(per_sample.shape[-1], device=positions.device)

@@ -169,3 +169,48 @@ def test_a_dropout_of_one_or_more_is_a_one_line_recipe_error():
 
     with pytest.raises(RecipeError, match=r"semantic.dropout: 1.0 is not in \[0, 1\)"):
         load_recipe("fast", ["semantic.dropout=1.0"])
+
+
+def test_leave_one_out_heads_trained_together_each_leave_out_only_their_own_frame():
+    """train_leave_one_out: three frames label the same points 1, 1 and 2. The head without the
+    frame that says 2 must say 1; the heads without one of the frames that say 1 are taught 1
+    by the other and 2 by the third, and must not have learnt from their own frame: where
+    frames A and C disagree alone (B says nothing there) the head without A says C's class."""
+    from dataclasses import replace
+
+    from labelsynth.semantics.head import SemanticHead
+    from labelsynth.semantics.training import BakedRays, train_leave_one_out
+
+    classes = ClassMap.default()
+    g = torch.Generator().manual_seed(0)
+    n = 600
+    pos = torch.rand(n, 1, 3, generator=g) * 1.6 - 0.8
+    feats = torch.zeros(n, 1, 15)
+    feats[..., 0] = torch.sign(pos[..., 0]) * 3.0  # the head can tell the two regions apart
+    frames, labels = [], []
+    # region x < 0: A says 1, C says 2 (B silent); region x >= 0: B says 1, C says 1
+    left = pos[:, 0, 0] < 0
+    for f, (lab_left, lab_right) in enumerate([(1, None), (None, 1), (2, 1)]):
+        for i in range(n):
+            lab = lab_left if bool(left[i]) else lab_right
+            if lab is not None:
+                frames.append(f)
+                labels.append((i, lab))
+    idx = torch.tensor([i for i, _ in labels])
+    baked = BakedRays(
+        positions=pos[idx], features=feats[idx], weights=torch.ones(len(idx), 1),
+        labels=torch.tensor([lab for _, lab in labels]), ray_weight=torch.ones(len(idx)),
+        frame_of_ray=torch.tensor(frames), frame_names=["A", "B", "C"],
+        frame_class_counts=np.array([[0, 300, 0, 0, 0, 0], [0, 300, 0, 0, 0, 0], [0, 300, 300, 0, 0, 0]]),
+        frame_expert=[True, True, True],
+    )
+    cfg = replace(load_recipe("fast").semantic, iterations=150, min_epochs=0.0, rays_per_batch=512, dropout=0.0)
+    make = lambda: SemanticHead(15, classes.num_classes, 32, 0.0, None)  # noqa: E731
+    heads = train_leave_one_out(make, baked, classes, cfg, ["A", "C"], seed=0)
+    assert set(heads) == {"A", "C"}
+    with torch.no_grad():
+        left_pts = left.nonzero().squeeze(-1)
+        say_a = heads["A"](feats[left_pts, 0], pos[left_pts, 0]).argmax(-1)  # taught only by C there
+        say_c = heads["C"](feats[left_pts, 0], pos[left_pts, 0]).argmax(-1)  # taught only by A there
+    assert float((say_a == 2).float().mean()) > 0.9
+    assert float((say_c == 1).float().mean()) > 0.9
