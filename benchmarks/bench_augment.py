@@ -209,9 +209,9 @@ def retrain(root: Path, out: Path, args) -> dict:
         cfg = TrainConfig(steps=args.steps, val_captures=[str(val)], eval_every=max(1, args.steps // 4), device="cpu",
                           seed=0)
         done = model / "train.json"
-        if (model / "model.onnx").exists() and done.exists() and \
-                json.loads(done.read_text())["arguments"].get("steps") == args.steps and not args.retrain:
-            record = json.loads(done.read_text())  # this arm's model from an earlier run, same steps
+        record = json.loads(done.read_text()) if (model / "model.onnx").exists() and done.exists() else None
+        if record is not None and record["arguments"].get("steps") == args.steps and not args.retrain:
+            # this arm's model from an earlier run, same steps
             train_frames, train_s = record["split"]["train_frames"], record["times"]["train_s"]
             log(f"retrain [{arm}]: reusing {model} (--retrain redoes it)")
         else:

@@ -164,6 +164,13 @@ def fit_field(
     return sem, {"seconds": {"geometry": t1 - t0, "semantics": t2 - t1}, "geometry": gstats, "semantic": sstats}
 
 
+def _scaled_semantic(cfg, fraction: float):
+    """The semantic stage's config with its steps and epochs scaled (the report's refits)."""
+    if fraction == 1.0:
+        return cfg
+    return replace(cfg, iterations=max(1, math.ceil(cfg.iterations * fraction)), min_epochs=cfg.min_epochs * fraction)
+
+
 def fit_semantics(
     sem: SemanticField,
     frames: list[LabelledFrame],
@@ -181,10 +188,7 @@ def fit_semantics(
     ``steps_fraction`` scales the head's steps and epochs (the report's refits: ``report.loo_fraction``).
     """
     recipe = sem.recipe
-    cfg = recipe.semantic
-    if steps_fraction != 1.0:
-        cfg = replace(cfg, iterations=max(1, math.ceil(cfg.iterations * steps_fraction)),
-                      min_epochs=cfg.min_epochs * steps_fraction)
+    cfg = _scaled_semantic(recipe.semantic, steps_fraction)
     if baked is None:
         baked = bake_semantic_rays(
             sem.sdf, sem.grid, frames, sem.classes, recipe.semantic, recipe.geometry.march_steps, seed=seed, progress=progress
@@ -323,19 +327,18 @@ class LeaveOneOutRefit:
         self.fraction = sem.recipe.report.loo_fraction
         self.heads: dict = {}
 
-    def _config(self):
-        cfg = self.sem.recipe.semantic
-        return replace(cfg, iterations=max(1, math.ceil(cfg.iterations * self.fraction)),
-                       min_epochs=cfg.min_epochs * self.fraction)
-
     def prepare(self, names: list[str], progress: bool = False) -> None:
-        sem = self.sem
-        todo = [n for n in names if n not in self.heads]
-        if sem.baked is None or not todo:
+        sem, baked = self.sem, self.sem.baked
+        if baked is None:
             return
-        if any(len(sem.baked.without({n})) == 0 for n in todo):
-            return  # refit alone, which says which frame left nothing
-        cfg = self._config()
+        # frames with baked rays whose absence leaves some; the others are refitted alone
+        # (which trains on every ray, or says which frame left nothing)
+        per_frame = torch.bincount(baked.frame_of_ray, minlength=len(baked.frame_names))
+        index = {n: i for i, n in enumerate(baked.frame_names)}
+        todo = [n for n in names if n not in self.heads and n in index]
+        if not todo or any(int(per_frame[index[n]]) == len(baked) for n in todo):
+            return
+        cfg = _scaled_semantic(sem.recipe.semantic, self.fraction)
         self.heads.update(train_leave_one_out(lambda: make_semantic_head(sem.sdf, sem.classes, cfg), sem.baked,
                                               sem.classes, cfg, todo, seed=self.seed, progress=progress))
 

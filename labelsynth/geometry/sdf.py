@@ -66,6 +66,14 @@ def choose_init_shape(view_dirs) -> str:
     return "plane" if float(np.quantile(angles, PLANE_VIEW_QUANTILE)) <= PLANE_MAX_VIEW_ANGLE_DEG else "sphere"
 
 
+def _colour_logit(rgb) -> torch.Tensor:
+    """The pre-sigmoid value of an RGB colour in 0-1 (kept off 0 and 1), for starting a head there."""
+    import numpy as np
+
+    c = np.clip(np.asarray(rgb, dtype=np.float64).reshape(3), 0.02, 0.98)
+    return torch.as_tensor(np.log(c / (1.0 - c)), dtype=torch.float32)
+
+
 class SDFField(nn.Module):
     """x in the unit cube -> signed distance (positive outside) and a geometry feature."""
 
@@ -145,10 +153,7 @@ class SDFField(nn.Module):
         the cube's walls, and rays that shell absorbs never teach the background again.
         Starting at the backdrop's colour removes that race.
         """
-        import numpy as np
-
-        c = np.clip(np.asarray(rgb, dtype=np.float64).reshape(3), 0.02, 0.98)
-        logit = torch.as_tensor(np.log(c / (1.0 - c)), dtype=torch.float32)
+        logit = _colour_logit(rgb)
         with torch.no_grad():
             last = self.background[-1]
             last.weight.mul_(0.01)
@@ -166,11 +171,8 @@ class SDFField(nn.Module):
         left in the cube). Started at what the images show on average, the surface loses
         that race only where the backdrop really is closer.
         """
-        import numpy as np
-
-        c = np.clip(np.asarray(rgb, dtype=np.float64).reshape(3), 0.02, 0.98)
         with torch.no_grad():
-            self.color_net[-1].bias.copy_(torch.as_tensor(np.log(c / (1.0 - c)), dtype=torch.float32))
+            self.color_net[-1].bias.copy_(_colour_logit(rgb))
 
     @property
     def inv_s(self) -> torch.Tensor:

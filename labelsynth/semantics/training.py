@@ -230,6 +230,14 @@ def semantic_iterations(cfg: SemanticConfig, rays: int) -> int:
     return max(cfg.iterations, math.ceil(cfg.min_epochs * rays / batch))
 
 
+def _semantic_optimiser(params, cfg: SemanticConfig, iterations: int, device: torch.device):
+    """Adam with the learning rate cosine-annealed from ``cfg.lr`` to ``cfg.lr * lr_final_factor``."""
+    opt = torch.optim.Adam(params, lr=cfg.lr, betas=(cfg.adam_beta1, cfg.adam_beta2), eps=cfg.adam_eps,
+                           **optimiser_options(device))
+    sched = torch.optim.lr_scheduler.CosineAnnealingLR(opt, T_max=max(iterations, 1), eta_min=cfg.lr * cfg.lr_final_factor)
+    return opt, sched
+
+
 def train_semantic(
     head: SemanticHead,
     baked: BakedRays,
@@ -246,11 +254,9 @@ def train_semantic(
     scheme = resolve_class_weighting(cfg.class_weighting, baked.expert_only)
     cw = class_weights(baked.class_counts, classes, cfg.background_weight, cfg.tissue_weight_floor, scheme)
     class_w = torch.from_numpy(cw).to(device)
-    opt = torch.optim.Adam(head.parameters(), lr=cfg.lr, betas=(cfg.adam_beta1, cfg.adam_beta2), eps=cfg.adam_eps,
-                           **optimiser_options(device))
     batch = min(cfg.rays_per_batch, len(baked))
     iterations = semantic_iterations(cfg, len(baked))
-    sched = torch.optim.lr_scheduler.CosineAnnealingLR(opt, T_max=max(iterations, 1), eta_min=cfg.lr * cfg.lr_final_factor)
+    opt, sched = _semantic_optimiser(head.parameters(), cfg, iterations, device)
     bg_idx = classes.background_index
     head.train()
     loss_ema = 0.0
@@ -309,10 +315,7 @@ def train_leave_one_out(
         left_out.append(j)
         rays = int((baked.frame_of_ray != j).sum())
         iterations = max(iterations, semantic_iterations(cfg, rays))
-    params = [p for head in heads.values() for p in head.parameters()]
-    opt = torch.optim.Adam(params, lr=cfg.lr, betas=(cfg.adam_beta1, cfg.adam_beta2), eps=cfg.adam_eps,
-                           **optimiser_options(device))
-    sched = torch.optim.lr_scheduler.CosineAnnealingLR(opt, T_max=max(iterations, 1), eta_min=cfg.lr * cfg.lr_final_factor)
+    opt, sched = _semantic_optimiser([p for head in heads.values() for p in head.parameters()], cfg, iterations, device)
     gen = torch.Generator(device=device).manual_seed(seed + 1)
     batch = min(cfg.rays_per_batch, len(baked))
     bg_idx = classes.background_index
