@@ -8,6 +8,7 @@ gradient), and it runs the same on CPU and CUDA. Coarse levels that fit are stor
 
 from __future__ import annotations
 
+import functools
 import math
 from dataclasses import dataclass
 
@@ -125,18 +126,22 @@ class HashGridEncoding(nn.Module):
         on the points and the grid's layout, not on the table. Encodings with the same layout
         (the report's leave-one-out heads) can share one lookup of the same points."""
         idx, frac, inside = self._lookup(x)
-        w_axis, w = _corner_weights(frac, self.corner_bits)
-        return GridLookup(idx, w_axis, w, inside, self.active_levels, self.layout)
+        return GridLookup(idx, _corner_weights(frac, self.corner_bits), inside, self.active_levels, self.layout)
 
     def forward(self, x: torch.Tensor, twice_differentiable: bool = False,
                 lookup: "GridLookup | None" = None) -> torch.Tensor:
         """x: (N, 3) in [-1, 1]^3 (clamped) -> (N, levels * features).
 
-        The default path has a hand-written backward (first derivatives with respect to x and
+        The default path has hand-written backwards (first derivatives with respect to x and
         the table: several times faster on CPU than autograd through the gathers). With
         ``twice_differentiable`` the same values come from plain autograd ops, which the
         eikonal loss needs for its second derivatives. ``lookup``: ``self.lookup(x)`` computed
         before (by this encoding or one with the same layout), to skip the index math.
+
+        The derivatives with respect to x and to the table are two autograd nodes over one
+        gather, so a backward pass pays only for what it asks: the SDF's normal
+        (``autograd.grad`` to x) never scatters into the table, and the loss's backward to the
+        parameters (``backward(inputs=...)``) never forms d/dx.
         """
         if twice_differentiable:
             return self._forward_autograd(x)
@@ -144,31 +149,44 @@ class HashGridEncoding(nn.Module):
             lookup = self.lookup(x)
         elif lookup.levels != self.active_levels or lookup.layout != self.layout:
             raise ValueError("the lookup was made for a hash grid of another layout")
-        return _HashInterp.apply(x, self.table, self, lookup)
+        with torch.no_grad():
+            feats = _gather_rows(self.table, lookup.idx.reshape(-1)).reshape(*lookup.w.shape, self.features_per_level)
+            values = self._pad(torch.einsum("nlc,nlcf->nlf", lookup.w, feats))
+        grad_on = torch.is_grad_enabled()
+        to_x = grad_on and x.requires_grad
+        to_table = grad_on and self.table.requires_grad
+        if to_x and to_table:
+            through_x = _PositionGrad.apply(x, values, feats, lookup, self)
+            through_table = _TableGrad.apply(self.table, values, lookup, self)
+            return through_x + (through_table - values)  # the same values; gradients reach both
+        if to_x:
+            return _PositionGrad.apply(x, values, feats, lookup, self)
+        if to_table:
+            return _TableGrad.apply(self.table, values, lookup, self)
+        return values
 
     def _forward_autograd(self, x: torch.Tensor) -> torch.Tensor:
         n, L = x.shape[0], self.active_levels
         idx, frac, _ = self._lookup(x)
-        _, w = _corner_weights(frac, self.corner_bits)
+        w = _corner_weights(frac, self.corner_bits)
         # index_select, not table[idx]: its backward is an index_add, several times faster on CPU.
         feats = self.table.index_select(0, idx.reshape(-1)).reshape(n, L, 8, self.features_per_level)
         return self._pad(torch.einsum("nlc,nlcf->nlf", w.reshape(n, L, 8), feats))
 
 
-def _corner_weights(frac: torch.Tensor, corner_bits: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-    """Per-axis weights (N, L, 3, 2) and trilinear corner weights (N, L, 8), x bit slowest."""
+def _corner_weights(frac: torch.Tensor, corner_bits: torch.Tensor) -> torch.Tensor:
+    """Trilinear corner weights (N, L, 8), x bit slowest."""
     w_axis = torch.stack([1.0 - frac, frac], dim=-1)
     cx, cy, cz = corner_bits
-    w = w_axis[:, :, 0].index_select(2, cx) * w_axis[:, :, 1].index_select(2, cy) * w_axis[:, :, 2].index_select(2, cz)
-    return w_axis, w
+    return w_axis[:, :, 0].index_select(2, cx) * w_axis[:, :, 1].index_select(2, cy) * w_axis[:, :, 2].index_select(2, cz)
 
 
 def _gather_rows(table: torch.Tensor, index: torch.Tensor) -> torch.Tensor:
     """``table.index_select(0, index)`` without autograd; a row of two float32 features is read
     as one 8-byte word, which CPU gathers do several times faster than two-element rows."""
     if table.dtype == torch.float32 and table.shape[1] == 2 and table.is_contiguous():
-        return table.view(torch.float64).reshape(-1).index_select(0, index).view(torch.float32).reshape(-1, 2)
-    return table.index_select(0, index)
+        return table.detach().view(torch.float64).reshape(-1).index_select(0, index).view(torch.float32).reshape(-1, 2)
+    return table.detach().index_select(0, index)
 
 
 def _scatter_rows(values: torch.Tensor, index: torch.Tensor, rows: int) -> torch.Tensor:
@@ -181,56 +199,88 @@ def _scatter_rows(values: torch.Tensor, index: torch.Tensor, rows: int) -> torch
     return values.new_zeros(rows, values.shape[1]).index_add_(0, index, values)
 
 
+@functools.lru_cache(maxsize=8)
+def _edge_matrices(device: torch.device, dtype: torch.dtype) -> tuple[torch.Tensor, torch.Tensor]:
+    """The 12 cell edges as two (8, 12) matrices over the corners (x bit slowest): ``DIFF``
+    takes the far corner minus the near one, ``SUM`` adds them. Along an edge the trilinear
+    weight of the other two axes is the sum of its two corners' weights (the axis' own two
+    weights add up to one), so d value / d position on each axis is a sum over its 4 edges
+    of (difference of the corners' values) x (sum of their weights): two small matrix
+    products instead of broadcasting 2 x 2 outer products, which is slow on CPU."""
+    diff = torch.zeros(8, 12, device=device, dtype=dtype)
+    total = torch.zeros(8, 12, device=device, dtype=dtype)
+    for axis, bit in enumerate((4, 2, 1)):
+        near = [c for c in range(8) if not c & bit]
+        for k, c in enumerate(near):
+            edge = axis * 4 + k
+            diff[c + bit, edge], diff[c, edge] = 1.0, -1.0
+            total[c + bit, edge] = total[c, edge] = 1.0
+    return diff, total
+
+
 @dataclass(frozen=True)
 class GridLookup:
     """``HashGridEncoding.lookup``: per point and level, the 8 corners' table rows and weights."""
 
     idx: torch.Tensor  # (N, L, 8) rows of the table
-    w_axis: torch.Tensor  # (N, L, 3, 2) per-axis weights
     w: torch.Tensor  # (N, L, 8) trilinear corner weights
     inside: torch.Tensor  # (N, 3) not clamped (the gradient with respect to x is zero outside)
     levels: int
     layout: tuple  # HashGridEncoding.layout of the encoding that made it
 
 
-class _HashInterp(torch.autograd.Function):
-    """Trilinear hash-grid interpolation with an explicit first-order backward."""
+class _PositionGrad(torch.autograd.Function):
+    """The interpolated features as a function of x (the table held fixed); first order."""
 
     @staticmethod
-    def forward(ctx, x: torch.Tensor, table: torch.Tensor, enc: HashGridEncoding, lookup: GridLookup) -> torch.Tensor:
-        n, L, F = x.shape[0], enc.active_levels, enc.features_per_level
-        with torch.no_grad():
-            idx, w_axis, w, inside = lookup.idx, lookup.w_axis, lookup.w, lookup.inside
-            feats = _gather_rows(table, idx.reshape(-1)).reshape(n, L, 8, F)
-            out = torch.einsum("nlc,nlcf->nlf", w, feats)
-        ctx.save_for_backward(idx, w_axis, w, feats, inside)
+    def forward(ctx, x: torch.Tensor, values: torch.Tensor, feats: torch.Tensor, lookup: GridLookup,
+                enc: HashGridEncoding) -> torch.Tensor:
+        ctx.save_for_backward(feats, lookup.w, lookup.inside)
         ctx.enc = enc
-        ctx.table_shape = table.shape
-        return enc._pad(out)
+        return values.clone()
 
     @staticmethod
     @torch.autograd.function.once_differentiable
     def backward(ctx, grad_out: torch.Tensor):
-        idx, w_axis, w, feats, inside = ctx.saved_tensors
+        feats, w, inside = ctx.saved_tensors
         enc = ctx.enc
         n, L, _, F = feats.shape
         g = grad_out.reshape(n, enc.levels, F)[:, :L]  # (N, L, F)
-        grad_x = grad_table = None
-        if ctx.needs_input_grad[1]:
-            contrib = (w[..., None] * g[:, :, None, :]).reshape(-1, F)
-            grad_table = _scatter_rows(contrib, idx.reshape(-1), ctx.table_shape[0])
-        if ctx.needs_input_grad[0]:
-            gf = torch.einsum("nlf,nlcf->nlc", g, feats).reshape(n, L, 2, 2, 2)  # d out / d w_c
-            wx, wy, wz = w_axis[:, :, 0], w_axis[:, :, 1], w_axis[:, :, 2]  # (N, L, 2)
-            dx = gf[:, :, 1] - gf[:, :, 0]  # (N, L, 2y, 2z)
-            dy = gf[:, :, :, 1] - gf[:, :, :, 0]  # (N, L, 2x, 2z)
-            dz = gf[:, :, :, :, 1] - gf[:, :, :, :, 0]  # (N, L, 2x, 2y)
-            gx = (dx * wy[..., :, None] * wz[..., None, :]).sum((-1, -2))
-            gy = (dy * wx[..., :, None] * wz[..., None, :]).sum((-1, -2))
-            gz = (dz * wx[..., :, None] * wy[..., None, :]).sum((-1, -2))
-            grad_pos = torch.stack([gx, gy, gz], dim=-1)  # (N, L, 3): d/d(pos) per level
-            grad_x = (grad_pos * enc.resolutions[:L][None, :, None]).sum(1) * 0.5 * inside.to(g.dtype)
-        return grad_x, grad_table, None, None
+        gf = feats[..., 0] * g[:, :, None, 0]  # d out / d w_c, (N, L, 8); unrolled: F is 2
+        for f in range(1, F):
+            gf = gf + feats[..., f] * g[:, :, None, f]
+        diff, total = _edge_matrices(feats.device, feats.dtype)
+        per_edge = (gf @ diff) * (w @ total)  # (N, L, 12): axis-major, 4 edges each
+        # sum over each axis' edges and the levels at once, scaled by each level's resolution
+        # (d pos / d x = res / 2)
+        scale = torch.zeros(L, 12, 3, device=feats.device, dtype=feats.dtype)
+        for axis in range(3):
+            scale[:, axis * 4 : axis * 4 + 4, axis] = enc.resolutions[:L, None] * 0.5
+        grad_x = (per_edge.reshape(n, L * 12) @ scale.reshape(L * 12, 3)) * inside.to(g.dtype)
+        return grad_x, None, None, None, None
+
+
+class _TableGrad(torch.autograd.Function):
+    """The interpolated features as a function of the table (x held fixed)."""
+
+    @staticmethod
+    def forward(ctx, table: torch.Tensor, values: torch.Tensor, lookup: GridLookup,
+                enc: HashGridEncoding) -> torch.Tensor:
+        ctx.save_for_backward(lookup.idx, lookup.w)
+        ctx.enc = enc
+        ctx.rows = table.shape[0]
+        return values.clone()
+
+    @staticmethod
+    @torch.autograd.function.once_differentiable
+    def backward(ctx, grad_out: torch.Tensor):
+        idx, w = ctx.saved_tensors
+        enc = ctx.enc
+        n, L, _ = w.shape
+        F = enc.features_per_level
+        g = grad_out.reshape(n, enc.levels, F)[:, :L]
+        contrib = (w[..., None] * g[:, :, None, :]).reshape(-1, F)
+        return _scatter_rows(contrib, idx.reshape(-1), ctx.rows), None, None, None
 
 
 def sh_deg2(d: torch.Tensor) -> torch.Tensor:

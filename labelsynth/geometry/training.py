@@ -183,6 +183,9 @@ def train_geometry(
     gen = torch.Generator(device=device).manual_seed(seed)
     sdf.train()
     opt, sched = _geometry_optimiser(sdf, cfg)
+    # backward to the parameters only: the samples' positions are leaves that need no gradient,
+    # and asking for none lets the hash grid skip d/dx (HashGridEncoding.forward)
+    params = [p for group in opt.param_groups for p in group["params"]]
     grid = OccupancyGrid(cfg.occupancy_resolution, device, margin=cfg.occupancy_margin, full_every=cfg.occupancy_full_every)
     n_rays = min(1024, cfg.max_rays)
     psnr_ema, spr_ema, occ = 0.0, 0.0, 1.0
@@ -198,7 +201,7 @@ def train_geometry(
             rgb, _, samples = render_rays_rgb(sdf, grid, origins, dirs, cos_ratio, cfg.march_steps, train=True)
             loss = F.l1_loss(rgb, target) + cfg.eikonal_weight * _eikonal_loss(sdf, samples.positions, cfg, gen)
             opt.zero_grad(set_to_none=True)
-            loss.backward()
+            loss.backward(inputs=params)
             opt.step()
             sched.step()
             n_samples = samples.positions.shape[0]

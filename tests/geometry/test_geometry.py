@@ -188,3 +188,33 @@ def test_a_surface_that_fills_every_view_is_not_given_away_to_the_background(tmp
     assert stats["init_shape"] == "plane"
     assert stats["final_psnr"] >= 30.0, stats
     assert stats["mean_samples_per_ray"] >= 5.0, stats  # rays still meet the band around a surface
+
+
+def test_each_backward_pass_of_the_encoding_pays_only_for_what_it_asks(monkeypatch):
+    # the SDF's normal asks for d/dx only, the loss's backward (inputs=parameters) for d/dtable
+    # only; each must match autograd through the gathers, and run only its own node
+    import labelsynth.geometry.encoding as encoding
+
+    calls = {"x": 0, "table": 0}
+    for key, cls in (("x", encoding._PositionGrad), ("table", encoding._TableGrad)):
+        original = cls.backward
+
+        def counted(ctx, grad, _original=original, _key=key):
+            calls[_key] += 1
+            return _original(ctx, grad)
+
+        monkeypatch.setattr(cls, "backward", staticmethod(counted))
+    torch.manual_seed(2)
+    enc = HashGridEncoding(levels=5, log2_table=10, base_resolution=4, max_resolution=48)
+    enc.table.data.normal_()
+    x = (torch.rand(300, 3) * 2 - 1).requires_grad_(True)
+    weights = torch.randn(300, enc.output_dim)
+    out = (enc(x) * weights).sum()
+    slow = (enc(x, twice_differentiable=True) * weights).sum()
+    (gx,) = torch.autograd.grad(out, x, retain_graph=True)
+    assert calls == {"x": 1, "table": 0}
+    out.backward(inputs=[enc.table])
+    assert calls == {"x": 1, "table": 1}
+    gx_slow, gt_slow = torch.autograd.grad(slow, [x, enc.table])
+    assert torch.allclose(gx, gx_slow, atol=1e-4)
+    assert torch.allclose(enc.table.grad, gt_slow, atol=1e-5)
