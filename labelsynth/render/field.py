@@ -135,7 +135,7 @@ class SemanticField:
         """Mask and confidence for every pixel of a camera given in unit-cube coordinates."""
         h, w = camera_unit.height, camera_unit.width
         caster = self.render_caster()
-        hit, points, faces = caster.cast_camera(camera_unit)
+        hit, points, faces, bary = caster.cast_camera(camera_unit, barycentric=True)
         c = self.classes.num_classes
         probs = np.zeros((h * w, c), dtype=np.float32)
         probs[:, self.classes.background_index] = 1.0
@@ -146,9 +146,8 @@ class SemanticField:
                 # Logits at the hit = barycentric blend of the logits at the triangle's vertices:
                 # one head evaluation per vertex instead of one per pixel of every frame.
                 tri = np.asarray(caster.mesh.faces)[faces[hit]]
-                bary = trimesh.triangles.points_to_barycentric(np.asarray(caster.mesh.triangles)[faces[hit]], points[hit])
                 vl = self.vertex_logits(tri.ravel())
-                logits = (vl[torch.from_numpy(tri).to(vl.device)] * torch.from_numpy(bary).to(vl)[..., None]).sum(1)
+                logits = (vl[torch.from_numpy(tri).to(vl.device)] * torch.from_numpy(bary[hit]).to(vl)[..., None]).sum(1)
             probs[hit] = torch.softmax(logits, dim=-1).cpu().numpy()
         index = decide_labels(probs, self.classes, self.recipe.render.decision)
         mask = self.classes.index_to_id_lut()[index].reshape(h, w)

@@ -53,34 +53,72 @@ def extract_mesh(sdf_fn, resolution: int, device: torch.device) -> trimesh.Trime
 
 
 class SurfaceCaster:
-    """Ray casting onto a mesh (Embree when installed, trimesh's pure-Python path otherwise)."""
+    """Ray casting onto a mesh: Embree (embreex) when installed, trimesh's pure-Python path otherwise.
+
+    Embree is called directly rather than through trimesh's wrapper, which recomputes every hit
+    in float64 by intersecting the ray with the triangle's plane, then ``points_to_barycentric``
+    recomputed the barycentric coordinates from that point: together more time than Embree's
+    own cast (README, Novel views: timing). Embree returns the triangle and the barycentric
+    coordinates of the hit; the point is formed from them on the triangle in float64. As in
+    trimesh, the mesh is shifted and scaled to a box about 100 wide for float32 precision.
+    """
 
     def __init__(self, mesh: trimesh.Trimesh) -> None:
         self.mesh = mesh
         self.empty = len(mesh.faces) == 0
-        if not self.empty:
-            try:
-                from trimesh.ray.ray_pyembree import RayMeshIntersector
+        self._scene = None
+        self.intersector = None
+        if self.empty:
+            return
+        self._vertices = np.asarray(mesh.vertices, dtype=np.float64)
+        self._faces = np.asarray(mesh.faces, dtype=np.int64)
+        try:
+            from embreex import rtcore_scene
+            from embreex.mesh_construction import TriangleMesh
+        except ImportError:  # embree missing on this platform
+            self.intersector = trimesh.ray.ray_triangle.RayMeshIntersector(mesh)
+            return
+        self._origin = self._vertices.min(axis=0)
+        self._scale = 100.0 / max(float(np.linalg.norm(np.ptp(self._vertices, axis=0))), 1e-12)
+        self._scene = rtcore_scene.EmbreeScene()
+        TriangleMesh(scene=self._scene, vertices=((self._vertices - self._origin) * self._scale).astype(np.float32),
+                     indices=self._faces.astype(np.int32))
 
-                self.intersector = RayMeshIntersector(mesh)
-            except Exception:  # embree missing on this platform
-                self.intersector = trimesh.ray.ray_triangle.RayMeshIntersector(mesh)
-
-    def first_hits(self, origins: np.ndarray, dirs: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """(hit mask (N,), hit points (N,3), face index (N,)) for the first intersection per ray."""
+    def cast(self, origins: np.ndarray, dirs: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """(hit mask (N,), hit points (N,3), face index (N,), barycentric coordinates (N,3)) of
+        the first intersection per ray (points and coordinates 0, face -1 on a miss)."""
         n = len(origins)
         hit = np.zeros(n, dtype=bool)
         points = np.zeros((n, 3))
         faces = np.full(n, -1, dtype=np.int64)
+        bary = np.zeros((n, 3))
         if self.empty or n == 0:
-            return hit, points, faces
-        loc, ray_idx, tri_idx = self.intersector.intersects_location(origins, dirs, multiple_hits=False)
-        hit[ray_idx] = True
-        points[ray_idx] = loc
-        faces[ray_idx] = tri_idx
+            return hit, points, faces, bary
+        if self._scene is None:
+            loc, ray_idx, tri_idx = self.intersector.intersects_location(origins, dirs, multiple_hits=False)
+            hit[ray_idx] = True
+            faces[ray_idx] = tri_idx
+            bary[ray_idx] = trimesh.triangles.points_to_barycentric(self.mesh.triangles[tri_idx], loc)
+            points[ray_idx] = loc
+            return hit, points, faces, bary
+        scaled = ((np.asarray(origins, dtype=np.float64) - self._origin) * self._scale).astype(np.float32)
+        out = self._scene.run(scaled, np.asarray(dirs, dtype=np.float32), output=1)
+        hit = out["primID"] >= 0
+        faces[hit] = out["primID"][hit]
+        u, v = out["u"][hit].astype(np.float64), out["v"][hit].astype(np.float64)
+        b = np.stack([1.0 - u - v, u, v], axis=-1)  # Embree: p = (1-u-v) p0 + u p1 + v p2
+        bary[hit] = b
+        points[hit] = np.einsum("nk,nkd->nd", b, self._vertices[self._faces[faces[hit]]])
+        return hit, points, faces, bary
+
+    def first_hits(self, origins: np.ndarray, dirs: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(hit mask (N,), hit points (N,3), face index (N,)) for the first intersection per ray."""
+        hit, points, faces, _ = self.cast(origins, dirs)
         return hit, points, faces
 
-    def cast_camera(self, camera: Camera) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """First hits of every pixel of ``camera`` (row-major)."""
+    def cast_camera(self, camera: Camera, barycentric: bool = False):
+        """First hits of every pixel of ``camera`` (row-major): (hit, points, faces), and the
+        barycentric coordinates with ``barycentric``."""
         o, d = camera.rays()
-        return self.first_hits(o, d)
+        out = self.cast(o, d)
+        return out if barycentric else out[:3]
