@@ -28,7 +28,6 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 import trimesh
-from trimesh.triangles import points_to_barycentric
 
 from ..cameras import Camera
 from ..classes import ClassMap
@@ -119,11 +118,10 @@ def _surface_normals(mesh: trimesh.Trimesh, faces: np.ndarray, bary: np.ndarray)
     return n / np.maximum(norm, 1e-12)[:, None]
 
 
-def _barycentric(mesh: trimesh.Trimesh, faces: np.ndarray, points: np.ndarray) -> np.ndarray:
-    """(N,3) barycentric weights of hit points in their faces, clipped to [0,1] and summing to 1."""
-    if len(faces) == 0:
+def _barycentric(bary: np.ndarray) -> np.ndarray:
+    """(N,3) barycentric weights of hits (``SurfaceCaster.cast``), clipped to [0,1] and summing to 1."""
+    if len(bary) == 0:
         return np.zeros((0, 3))
-    bary = points_to_barycentric(np.asarray(mesh.triangles)[faces], points)
     bary = np.clip(np.nan_to_num(bary, nan=1.0 / 3.0), 0.0, 1.0)
     s = bary.sum(1, keepdims=True)
     return np.where(s > 0, bary / np.maximum(s, 1e-12), 1.0 / 3.0)
@@ -155,11 +153,11 @@ def view_votes(
     if not use.any():
         return votes
     origins, dirs = camera_unit.rays(pix[use])
-    hit, points, faces = caster.first_hits(origins, dirs)
+    hit, _, faces, bary = caster.cast(origins, dirs)
     if not hit.any():
         return votes
-    cls, dirs, points, faces = cls[use][hit], dirs[hit], points[hit], faces[hit]
-    bary = _barycentric(mesh, faces, points)
+    cls, dirs, faces = cls[use][hit], dirs[hit], faces[hit]
+    bary = _barycentric(bary[hit])
     cos = np.abs((_surface_normals(mesh, faces, bary) * dirs).sum(1))
     ok = cos >= np.cos(np.deg2rad(cutoff_deg)) - 1e-9
     if not ok.any():
@@ -251,10 +249,10 @@ def render_labels(fused: FusedLabels, camera_unit: Camera) -> np.ndarray:
     caster = fused._caster()
     if caster.empty:
         return out.reshape(h, w)
-    hit, points, faces = caster.cast_camera(camera_unit)
+    hit, _, faces, bary = caster.cast(*camera_unit.rays())
     if hit.any():
         f = faces[hit]
-        bary = _barycentric(fused.mesh, f, points[hit])
+        bary = _barycentric(bary[hit])
         tri = np.asarray(fused.mesh.faces, dtype=np.int64)[f]
         share = (bary[:, :, None] * fused.vertex_shares[tri]).sum(1)
         idx = share.argmax(1)

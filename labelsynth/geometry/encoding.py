@@ -185,8 +185,8 @@ def _gather_rows(table: torch.Tensor, index: torch.Tensor) -> torch.Tensor:
     """``table.index_select(0, index)`` without autograd; a row of two float32 features is read
     as one 8-byte word, which CPU gathers do several times faster than two-element rows."""
     if table.dtype == torch.float32 and table.shape[1] == 2 and table.is_contiguous():
-        return table.detach().view(torch.float64).reshape(-1).index_select(0, index).view(torch.float32).reshape(-1, 2)
-    return table.detach().index_select(0, index)
+        return table.view(torch.float64).reshape(-1).index_select(0, index).view(torch.float32).reshape(-1, 2)
+    return table.index_select(0, index)
 
 
 def _scatter_rows(values: torch.Tensor, index: torch.Tensor, rows: int) -> torch.Tensor:

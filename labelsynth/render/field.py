@@ -135,7 +135,7 @@ class SemanticField:
         """Mask and confidence for every pixel of a camera given in unit-cube coordinates."""
         h, w = camera_unit.height, camera_unit.width
         caster = self.render_caster()
-        hit, points, faces, bary = caster.cast_camera(camera_unit, barycentric=True)
+        hit, points, faces, bary = caster.cast(*camera_unit.rays())
         c = self.classes.num_classes
         probs = np.zeros((h * w, c), dtype=np.float32)
         probs[:, self.classes.background_index] = 1.0

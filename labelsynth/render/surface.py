@@ -116,9 +116,7 @@ class SurfaceCaster:
         hit, points, faces, _ = self.cast(origins, dirs)
         return hit, points, faces
 
-    def cast_camera(self, camera: Camera, barycentric: bool = False):
-        """First hits of every pixel of ``camera`` (row-major): (hit, points, faces), and the
-        barycentric coordinates with ``barycentric``."""
-        o, d = camera.rays()
-        out = self.cast(o, d)
-        return out if barycentric else out[:3]
+    def cast_camera(self, camera: Camera) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """First hits of every pixel of ``camera`` (row-major); ``cast(*camera.rays())`` for the
+        barycentric coordinates too."""
+        return self.first_hits(*camera.rays())
