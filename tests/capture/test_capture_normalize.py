@@ -39,6 +39,34 @@ def _wound_cameras(n=25, wound=(0.3, -0.2, 0.0), seed=0) -> list[Camera]:
     return cams
 
 
+def _close_up_cameras(n=30, seed=0) -> list[Camera]:
+    """Cameras a unit above a large flat object (z = 0), each aimed at a different part of it:
+    a DTU scan whose building fills every view, where the axes do not meet at one point."""
+    rng = np.random.default_rng(seed)
+    cams = []
+    for _ in range(n):
+        target = np.array([*rng.uniform(-1, 1, 2), 0.0])
+        angle, tilt = rng.uniform(0, 2 * math.pi), rng.uniform(0.2, 0.6)
+        cams.append(_cam(target + [tilt * math.cos(angle), tilt * math.sin(angle), 1.0], target))
+    return cams
+
+
+def _view_on_plane(cam: Camera) -> np.ndarray:
+    """Where the image's corner rays meet the plane z = 0: what the camera sees of the object."""
+    corners = np.array([[0, 0], [cam.width, 0], [0, cam.height], [cam.width, cam.height]], dtype=np.float64)
+    o, d = cam.rays(corners)
+    return o + d * (-o[:, 2] / d[:, 2])[:, None]
+
+
+def test_close_up_views_of_a_large_object_stay_inside_the_cube() -> None:
+    # One image's footprint (the rule before) left a third of these views partly outside the
+    # cube, where the field can only call the object background.
+    cams = _close_up_cameras()
+    roi = region_of_interest(cams)
+    inside = [np.abs(roi.to_unit(_view_on_plane(c))).max() <= 1.0 for c in cams]
+    assert np.mean(inside) >= 0.9, roi
+
+
 def test_object_centric_sphere() -> None:
     cams = _sphere_cameras()
     roi = region_of_interest(cams)
