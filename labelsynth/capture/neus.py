@@ -21,6 +21,8 @@ Other keys (``camera_mat_i``, ``*_inv_i``) are ignored, as NeuS ignores them.
   a translation, the same for every frame, and it becomes the capture's
   ``SceneNormalization`` as it is (centre = its translation, scale = its scale), so the
   sphere is the ball inscribed in the field's cube; ``region_of_interest`` is not used.
+  Most cameras inside the sphere is refused (its scale_mat and the world_mat are then from
+  two different worlds).
 - ``mask/`` masks are exact object masks, so they are the frames' expert annotations
   (kind ``binary``: object = id 1); without a ``classes.json`` the class table is
   background (0) and object (1). ``load_capture`` lets an ``annotations/`` folder win over
@@ -91,10 +93,25 @@ def read_neus(npz_path: str | Path) -> PosedFrames:
                                         target=normalization.center)
         frames.append(Frame(name=image_path.stem, image_path=image_path, camera=camera,
                             annotation_path=masks[i] if masks else None))
+    _check_cameras_outside(frames, normalization, npz_path)
     return PosedFrames(
         frames=frames, source=NPZ_NAME, normalization=normalization, classes=NEUS_CLASSES,
         mask_kinds={root / MASK_FOLDER: "binary"} if masks else {},
     )
+
+
+def _check_cameras_outside(frames: list[Frame], sphere: SceneNormalization, path: Path) -> None:
+    """NeuS frames an object inside the unit sphere from cameras outside it. Most cameras
+    inside it means scale_mat_i and world_mat_i are not in one world (a file whose world_mat_i
+    were normalised already, say): the field would model a region around the cameras."""
+    inside = sum(np.linalg.norm(f.camera.center - sphere.center) < sphere.scale for f in frames)
+    if inside > len(frames) // 2:
+        centre = ", ".join(f"{v:.3g}" for v in sphere.center)
+        raise CaptureError(
+            f"{path}: {inside} of {len(frames)} cameras lie inside the unit sphere of scale_mat_0 (centre {centre}, "
+            f"radius {sphere.scale:.3g}); the object must be inside it and the cameras outside "
+            "(are world_mat_i and scale_mat_i in the same world?)"
+        )
 
 
 def camera_from_projection(

@@ -179,6 +179,8 @@ def _broken_mats() -> list:
     other[:3, 3] += 0.1
     away = projection(look_at(OFFSET + [0, 0, 5.0], OFFSET + [0, 0, 10.0]))
     skewed = projection(neus_poses()[0], K + [[0, 3.0, 0], [0, 0, 0], [0, 0, 0]])
+    engulfing = scale_mat()
+    engulfing[:3, :3] *= 20  # a sphere around the cameras: scale_mat_i from another world
     return [
         pytest.param({}, ("world_mat_2",), "missing world_mat_2", id="missing-world-mat"),
         pytest.param({}, ("scale_mat_3",), "missing scale_mat_3", id="missing-scale-mat"),
@@ -191,6 +193,8 @@ def _broken_mats() -> list:
         pytest.param({"world_mat_1": skewed}, (), "skew", id="skew"),
         pytest.param({"scale_mat_2": nonuniform}, (), "uniform scale", id="non-uniform-scale-mat"),
         pytest.param({"scale_mat_2": other}, (), "differs from scale_mat_0", id="scale-mats-differ"),
+        pytest.param({f"scale_mat_{i}": engulfing for i in range(N)}, (), "4 of 4 cameras lie inside the unit sphere",
+                     id="cameras-inside-the-sphere"),
     ]
 
 
