@@ -15,9 +15,9 @@ from ..cameras import Camera
 from .model import SceneNormalization
 
 FOOTPRINT_MARGIN = 1.2
-# The cube holds what this share of the cameras sees at the centre's depth (a few stray
-# frames may look elsewhere); the same share as the initial shape's view test (geometry.sdf).
-FOOTPRINT_QUANTILE = 0.9
+# The cube reaches as far as this share of the cameras' axes stray from the centre (a few
+# stray frames may look elsewhere); the same share as the initial shape's view test.
+AIM_QUANTILE = 0.9
 OUTLIER_FACTOR = 5.0
 MIN_POINTS = 10
 
@@ -37,15 +37,16 @@ def region_of_interest(cameras: Sequence[Camera], points: np.ndarray | None = No
          (at least 1 if too few qualify; the axes centre if still too few). SfM points lie
          on the surface, so they beat any guess from the axes, and the median ignores
          stray background points.
-    Half-size: how far from the centre the cameras' views reach at the centre's depth
-    (``_footprint_reach``: where a camera's axis passes that depth, plus the half-width of its
-    image footprint there x 1.2), for 90% of the cameras; and, when points are given, at
-    least the 95th percentile of their distances to the centre after dropping points farther
-    than 5x the median distance. Cameras that converge on the centre (an object filmed all
-    around, a phone aimed at a wound) reach one footprint's half-width; cameras close to a
-    large object, each aimed at a different part of it (a DTU scan: a building filling every
-    view), reach further, and a cube of one footprint would leave what they see outside it,
-    where the field can only call it background.
+    Half-size: the half-width of an image's footprint at the centre (median camera distance
+    to the centre x max(tan half-FOV x, tan half-FOV y)) x 1.2, plus how far from the centre
+    the cameras aim (``_aim_offsets``: where each optical axis passes the centre's depth; the
+    90th percentile); and, when points are given, at least the 95th percentile of their
+    distances to the centre after dropping points farther than 5x the median distance.
+    Cameras that converge on the centre (an object filmed all around, a phone aimed at a
+    wound) aim at it, so the cube is one footprint; cameras close to a large object, each
+    aimed at a different part of it (a building that fills every view), see that much
+    further, and a cube of one footprint would leave what they see outside it, where the
+    field can only call it background.
     """
     cameras = list(cameras)
     if not cameras:
@@ -58,7 +59,10 @@ def region_of_interest(cameras: Sequence[Camera], points: np.ndarray | None = No
     if kept is not None:
         centre = np.median(kept, axis=0)
 
-    half = float(np.quantile(_footprint_reach(cameras, centre), FOOTPRINT_QUANTILE))
+    dist = np.linalg.norm(centres - centre, axis=1)
+    d_med = float(np.median(dist))
+    tan_half = float(np.median([max(0.5 * c.width / c.fx, 0.5 * c.height / c.fy) for c in cameras]))
+    half = d_med * tan_half * FOOTPRINT_MARGIN + float(np.quantile(_aim_offsets(cameras, centre), AIM_QUANTILE))
 
     if kept is None and guessed_depth is not None:
         half = max(half, guessed_depth)  # depth unknown: reach from the cameras to twice the guess
@@ -76,17 +80,14 @@ def region_of_interest(cameras: Sequence[Camera], points: np.ndarray | None = No
     return SceneNormalization(center=np.asarray(centre, dtype=np.float64), scale=float(half))
 
 
-def _footprint_reach(cameras: list[Camera], centre: np.ndarray) -> np.ndarray:
-    """Per camera, the max-norm distance from ``centre`` that its view covers at the centre's
-    depth: the offset of the point where its optical axis reaches that depth, plus the
-    half-width of its image footprint there (the larger of the two image axes) x margin."""
-    reach = np.empty(len(cameras))
+def _aim_offsets(cameras: list[Camera], centre: np.ndarray) -> np.ndarray:
+    """Per camera, the max-norm distance from ``centre`` of the point where its optical axis
+    reaches the centre's depth: zero for cameras aimed at the centre."""
+    offsets = np.empty(len(cameras))
     for i, cam in enumerate(cameras):
         depth = max(float(np.dot(centre - cam.center, cam.forward)), 0.0)
-        on_axis = cam.center + depth * cam.forward
-        tan_half = max(0.5 * cam.width / cam.fx, 0.5 * cam.height / cam.fy)
-        reach[i] = float(np.abs(on_axis - centre).max()) + depth * tan_half * FOOTPRINT_MARGIN
-    return reach
+        offsets[i] = float(np.abs(cam.center + depth * cam.forward - centre).max())
+    return offsets
 
 
 def _axes_centre(centres: np.ndarray, forwards: np.ndarray) -> tuple[np.ndarray, float | None]:
