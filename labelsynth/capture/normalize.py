@@ -40,7 +40,8 @@ def region_of_interest(cameras: Sequence[Camera], points: np.ndarray | None = No
     Half-size: the half-width of an image's footprint at the centre (median camera distance
     to the centre x max(tan half-FOV x, tan half-FOV y)) x 1.2, plus how far from the centre
     the cameras aim (``_aim_offsets``: where each optical axis passes the centre's depth; the
-    90th percentile); and, when points are given, at least the 95th percentile of their
+    90th percentile) beyond the 0.2 footprint the margin already adds; and, when points are
+    given, at least the 95th percentile of their
     distances to the centre after dropping points farther than 5x the median distance.
     Cameras that converge on the centre (an object filmed all around, a phone aimed at a
     wound) aim at it, so the cube is one footprint; cameras close to a large object, each
@@ -62,7 +63,10 @@ def region_of_interest(cameras: Sequence[Camera], points: np.ndarray | None = No
     dist = np.linalg.norm(centres - centre, axis=1)
     d_med = float(np.median(dist))
     tan_half = float(np.median([max(0.5 * c.width / c.fx, 0.5 * c.height / c.fy) for c in cameras]))
-    half = d_med * tan_half * FOOTPRINT_MARGIN + float(np.quantile(_aim_offsets(cameras, centre), AIM_QUANTILE))
+    footprint = d_med * tan_half
+    # the footprint's margin already covers axes that miss the centre by less than it
+    stray = float(np.quantile(_aim_offsets(cameras, centre), AIM_QUANTILE))
+    half = footprint * FOOTPRINT_MARGIN + max(0.0, stray - footprint * (FOOTPRINT_MARGIN - 1.0))
 
     if kept is None and guessed_depth is not None:
         half = max(half, guessed_depth)  # depth unknown: reach from the cameras to twice the guess
