@@ -282,7 +282,7 @@ def main() -> None:
     ap.add_argument("--sweep", action="store_true", help="loo: compare the blending settings")
     ap.add_argument("--dice-views", type=int, default=20)
     ap.add_argument("--views", type=int, default=200)
-    ap.add_argument("--steps", type=int, default=300)
+    ap.add_argument("--steps", type=int, default=1000, help="retrain: SegFormer steps per arm (300 left both arms unconverged)")
     ap.add_argument("--retrain", action="store_true", help="retrain: redo models that exist with the same steps")
     ap.add_argument("--val-seed", type=int, default=50)
     ap.add_argument("--test-seeds", type=lambda s: [int(x) for x in s.split(",")], default=[51, 52])
