@@ -41,8 +41,8 @@ def region_of_interest(cameras: Sequence[Camera], points: np.ndarray | None = No
     to the centre x max(tan half-FOV x, tan half-FOV y)) x 1.2, plus how far from the centre
     the cameras aim (``_aim_offsets``: where each optical axis passes the centre's depth; the
     90th percentile) beyond the 0.2 footprint the margin already adds; and, when points are
-    given, at least the 95th percentile of their
-    distances to the centre after dropping points farther than 5x the median distance.
+    given, at least the 95th percentile of their distances to the centre after dropping
+    points farther than 5x the median distance.
     Cameras that converge on the centre (an object filmed all around, a phone aimed at a
     wound) aim at it, so the cube is one footprint; cameras close to a large object, each
     aimed at a different part of it (a building that fills every view), see that much
@@ -65,7 +65,7 @@ def region_of_interest(cameras: Sequence[Camera], points: np.ndarray | None = No
     tan_half = float(np.median([max(0.5 * c.width / c.fx, 0.5 * c.height / c.fy) for c in cameras]))
     footprint = d_med * tan_half
     # the footprint's margin already covers axes that miss the centre by less than it
-    stray = float(np.quantile(_aim_offsets(cameras, centre), AIM_QUANTILE))
+    stray = float(np.quantile(_aim_offsets(centres, forwards, centre), AIM_QUANTILE))
     half = footprint * FOOTPRINT_MARGIN + max(0.0, stray - footprint * (FOOTPRINT_MARGIN - 1.0))
 
     if kept is None and guessed_depth is not None:
@@ -84,14 +84,12 @@ def region_of_interest(cameras: Sequence[Camera], points: np.ndarray | None = No
     return SceneNormalization(center=np.asarray(centre, dtype=np.float64), scale=float(half))
 
 
-def _aim_offsets(cameras: list[Camera], centre: np.ndarray) -> np.ndarray:
-    """Per camera, the max-norm distance from ``centre`` of the point where its optical axis
-    reaches the centre's depth: zero for cameras aimed at the centre."""
-    offsets = np.empty(len(cameras))
-    for i, cam in enumerate(cameras):
-        depth = max(float(np.dot(centre - cam.center, cam.forward)), 0.0)
-        offsets[i] = float(np.abs(cam.center + depth * cam.forward - centre).max())
-    return offsets
+def _aim_offsets(centres: np.ndarray, forwards: np.ndarray, centre: np.ndarray) -> np.ndarray:
+    """Per camera (centres and unit viewing directions, (N, 3) each), the max-norm distance from
+    ``centre`` of the point where its optical axis reaches the centre's depth: zero for cameras
+    aimed at the centre."""
+    depths = np.einsum("ni,ni->n", centre - centres, forwards).clip(min=0.0)
+    return np.abs(centres + depths[:, None] * forwards - centre).max(axis=1)
 
 
 def _axes_centre(centres: np.ndarray, forwards: np.ndarray) -> tuple[np.ndarray, float | None]:
