@@ -206,7 +206,7 @@ def segment(
     force: bool = typer.Option(False, help="With --into-capture: replace existing predictions."),
 ) -> None:
     """Run a 2D ONNX segmenter over every frame (the "2D" baseline) and write class-id masks."""
-    from .evaluation.segment import resolve_out_dir, segment_capture
+    from .train.segment import resolve_out_dir, segment_capture
 
     out_dir = resolve_out_dir(capture, out, into_capture)
     report = segment_capture(
