@@ -1,19 +1,20 @@
-"""Which frames of a video (or photos of a folder) to keep: sharp ones, spread over the camera's
-motion, no two alike.
+"""Which frames of a video (or photos of a folder) to keep: sharp ones, spread over the video,
+no two alike.
 
-Three measures, each cheap enough to run on every decoded frame:
+Two measures, each cheap enough to run on every decoded frame:
 
 - **sharpness**: the variance of the Laplacian of the grey frame at the size it will be written
   (blur removes exactly the high frequencies the Laplacian keeps). It compares frames of one
-  video; its absolute value depends on the scene, so every threshold is relative to the video's
+  video; its absolute value depends on the scene, so the blur floor is relative to the video's
   own 90th percentile.
-- **motion**: how far the camera has moved since the start, in image diagonals, from the median
+- **motion**: how far the camera has moved since the start, in image diagonals: the median
   displacement of corners tracked (pyramidal Lucas-Kanade, forward-backward checked) from a
-  reference frame that is replaced only after a real move. A phone held still adds nothing,
-  however long, since sensor noise never accumulates against a fixed reference.
-- **windows**: the video's total motion is cut into as many equal parts as frames are wanted and
-  the sharpest frame of each part is kept, so a video that dwells on one view and pans quickly
-  past another still gives frames spread over the views, not over the seconds.
+  reference frame, which is replaced after a move of ``step``. A phone held still adds nothing,
+  however long, since tremor and sensor noise never add up against a fixed reference.
+
+The video is cut into equal stretches of time and the sharpest usable frame of each is kept;
+a pick that barely moved from the previous one (a phone held still) is dropped, and the frames
+it leaves free go where the kept frames are furthest apart along the camera's path.
 """
 
 from __future__ import annotations
@@ -25,6 +26,7 @@ import numpy as np
 
 THUMB_SIDE = 320  # long side of the grey thumbnail that motion is tracked on
 MIN_TRACKED = 12  # fewer tracked corners than this: the frame is not comparable with the reference
+LOST_MOVE = 0.02  # motion counted for a frame that matches neither the reference nor the previous frame
 
 
 def sharpness(gray: np.ndarray) -> float:
@@ -56,10 +58,10 @@ class MotionTracker:
     makes the current frame the new reference. A frame that cannot be compared with the
     reference (a blur smeared the corners, too few of them survived) is compared with the
     previous frame instead, which then becomes the reference; one that matches neither (a cut,
-    a blank wall) counts as a move of ``step``, so the worst case is a spread over time.
+    a blank wall) counts as a move of ``LOST_MOVE``: never a near-duplicate.
     """
 
-    def __init__(self, step: float = 0.05) -> None:
+    def __init__(self, step: float = 0.005) -> None:
         self.step = step
         self._ref: np.ndarray | None = None
         self._pts: np.ndarray | None = None
@@ -78,7 +80,7 @@ class MotionTracker:
                 self._reset(self._prev, self._prev_position)  # go through the previous frame
                 moved = self._displacement(thumb)
             if moved is None:
-                self._reset(thumb, self._base + self.step)
+                self._reset(thumb, self._base + LOST_MOVE)
                 position = self._base
             elif moved > self.step:
                 self._reset(thumb, self._base + moved)
@@ -118,7 +120,7 @@ class Pick:
     chosen: list[int]  # positions into the measured frames, in order
     blurred: int  # frames below the blur floor (never candidates)
     near_duplicates: int = 0  # window picks dropped for having barely moved from the previous pick
-    filled: int = 0  # frames added in the widest gaps because windows came out empty or duplicated
+    filled: int = 0  # frames added in the widest gaps after runs came out empty or duplicated
 
 
 def usable_mask(sharp: np.ndarray, blur_floor: float) -> np.ndarray:
@@ -129,25 +131,28 @@ def usable_mask(sharp: np.ndarray, blur_floor: float) -> np.ndarray:
     return sharp >= blur_floor * float(np.percentile(sharp, 90))
 
 
-def pick_by_motion(sharp: np.ndarray, motion: np.ndarray, k: int, *, blur_floor: float,
-                   min_motion: float) -> Pick:
-    """Up to ``k`` frames of a video: the sharpest usable frame in each of ``k`` equal parts of
-    the camera's motion; a pick that moved less than ``min_motion`` (share of the diagonal)
-    from the previous kept one is a near-duplicate and dropped (the sharper of the two stays).
-    Parts left without a frame (the camera jumped across one, or it held only blurred frames)
-    are made up where the kept frames are furthest apart: the sharpest usable frame near the
-    middle of the widest gap, at least ``min_motion`` from both ends, until ``k`` or none fits."""
+def pick_spread(sharp: np.ndarray, k: int, *, blur_floor: float, motion: np.ndarray | None = None,
+                min_motion: float = 0.0) -> Pick:
+    """Up to ``k`` frames: the sharpest usable frame in each of ``k`` equal runs of frames (time,
+    or name order for photos). With ``motion`` (a video), a pick that moved less than
+    ``min_motion`` (share of the diagonal) from the previous kept one is a near-duplicate and is
+    dropped (the sharper of the two stays); runs left without a frame (only blurred ones, or a
+    near-duplicate) are made up where the kept frames are furthest apart on the camera's path:
+    the sharpest usable frame near the middle of the widest gap, at least ``min_motion`` from
+    both ends, until ``k`` or none fits. Photos: all usable ones when there are at most ``k``."""
     sharp = np.asarray(sharp, dtype=np.float64)
-    motion = np.asarray(motion, dtype=np.float64)
     usable = usable_mask(sharp, blur_floor)
-    total = float(motion[-1]) if motion.size else 0.0
-    edges = np.linspace(0.0, total, k + 1)
-    window = np.minimum(np.searchsorted(edges, motion, side="right") - 1, k - 1)
+    blurred = int((~usable).sum())
+    if motion is None and usable.sum() <= k:
+        return Pick([int(i) for i in np.flatnonzero(usable)], blurred)
     picks = []
-    for j in range(k):
-        candidates = np.flatnonzero((window == j) & usable)
+    for run in np.array_split(np.arange(len(sharp)), k):
+        candidates = run[usable[run]]
         if candidates.size:
             picks.append(int(candidates[np.argmax(sharp[candidates])]))
+    if motion is None:
+        return Pick(picks, blurred)
+    motion = np.asarray(motion, dtype=np.float64)
     kept: list[int] = []
     for i in picks:
         if kept and motion[i] - motion[kept[-1]] < min_motion:
@@ -163,7 +168,7 @@ def pick_by_motion(sharp: np.ndarray, motion: np.ndarray, k: int, *, blur_floor:
             break
         kept = sorted([*kept, extra])
         filled += 1
-    return Pick(kept, int((~usable).sum()), duplicates, filled)
+    return Pick(kept, blurred, duplicates, filled)
 
 
 def _fill_widest_gap(kept: list[int], sharp: np.ndarray, motion: np.ndarray, usable: np.ndarray,
@@ -188,15 +193,3 @@ def _fill_widest_gap(kept: list[int], sharp: np.ndarray, motion: np.ndarray, usa
         candidates = np.flatnonzero(middle if middle.any() else room)
         return int(candidates[np.argmax(sharp[candidates])])
     return None
-
-
-def pick_by_order(sharp: np.ndarray, k: int, *, blur_floor: float) -> Pick:
-    """Photos of a folder: every usable one when there are at most ``k``, else the sharpest of
-    each of ``k`` equal runs of them in name order."""
-    usable = np.flatnonzero(usable_mask(sharp, blur_floor))
-    blurred = len(sharp) - len(usable)
-    if len(usable) <= k:
-        return Pick([int(i) for i in usable], blurred)
-    sharp = np.asarray(sharp, dtype=np.float64)
-    chosen = [int(run[np.argmax(sharp[run])]) for run in np.array_split(usable, k)]
-    return Pick(chosen, blurred)

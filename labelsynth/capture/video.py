@@ -31,7 +31,7 @@ from .. import __version__
 from ..errors import CaptureError, LabelsynthError
 from ..outdir import building, write_text_atomic
 from ..progress import make_progress
-from .framepick import MotionTracker, Pick, pick_by_motion, pick_by_order, resize_to, sharpness, thumbnail
+from .framepick import MotionTracker, Pick, pick_spread, resize_to, sharpness, thumbnail
 from .images import IMAGE_SUFFIXES, list_images, read_image, write_image
 from .poses import PoseReport, estimate_poses
 
@@ -55,11 +55,14 @@ class ImportConfig:
     """A frame less sharp than this share of the 90th percentile of the source's sharpness is
     unusable. Measured on the fox photos at 720x1280: sharp photos 0.40-1.55, a Gaussian blur
     of 1 px 0.10-0.28, of 2 px 0.04-0.06, a 15 px motion blur 0.05-0.10."""
-    min_motion: float = 0.01
+    min_motion: float = 0.004
     """Video: a kept frame whose camera moved less than this share of the image diagonal since
-    the previous kept frame is a near-duplicate (a phone held still) and is dropped."""
-    motion_step: float = 0.05
-    """Video: the motion tracker takes a new reference frame after a move of this share of the diagonal."""
+    the previous kept frame is a near-duplicate (a phone held still) and is dropped. Measured at
+    320 px: a still frame with half a pixel of jitter and sensor noise moves 0.02-0.1%;
+    consecutive fox photos (instant-ngp's pick of distinct views) 0.55-5.8%."""
+    motion_step: float = 0.005
+    """Video: the motion tracker takes a new reference frame after a move of this share of the
+    diagonal; tremor below it never adds up to motion."""
     min_registered: float = 0.5
     """SfM must register at least this share of the written frames, else the import fails."""
 
@@ -272,8 +275,8 @@ def _import_video(source: Path, images: Path, config: ImportConfig, progress: bo
         raise CaptureError(f"{source}: no frame could be decoded")
     seconds = {"decode": time.perf_counter() - t0}
 
-    pick = pick_by_motion(np.array(sharp), np.array(motion), config.frames,
-                          blur_floor=config.blur_floor, min_motion=config.min_motion)
+    pick = pick_spread(np.array(sharp), config.frames, blur_floor=config.blur_floor, motion=np.array(motion),
+                       min_motion=config.min_motion)
     if len(pick.chosen) < config.frames:
         raise CaptureError(_too_few(source, len(sharp), pick, config))
     t1 = time.perf_counter()
@@ -314,7 +317,7 @@ def _import_photos(source: Path, images: Path, config: ImportConfig, progress: b
             sharp.append(sharpness(gray))
             bar.advance(task)
     seconds = {"decode": time.perf_counter() - t0}
-    pick = pick_by_order(np.array(sharp), config.frames, blur_floor=config.blur_floor)
+    pick = pick_spread(np.array(sharp), config.frames, blur_floor=config.blur_floor)
     needed = 3 if config.poses else 1
     if len(pick.chosen) < needed:
         raise CaptureError(f"{source}: only {len(pick.chosen)} usable photos of {len(paths)} "

@@ -4,7 +4,6 @@ AVI) and folders of photos become capture folders; bad input is one line and lea
 from __future__ import annotations
 
 import json
-import struct
 from pathlib import Path
 
 import cv2
@@ -14,10 +13,11 @@ from PIL import Image
 from typer.testing import CliRunner
 
 from labelsynth.capture import load_capture
-from labelsynth.capture.framepick import MotionTracker, pick_by_motion, sharpness
+from labelsynth.capture.framepick import MotionTracker, pick_spread, sharpness
 from labelsynth.capture.video import ImportConfig, import_capture
 from labelsynth.cli import app
 from labelsynth.errors import CaptureError
+from labelsynth.evaluation.video import tag_rotation
 
 
 def write_video(path: Path, frames: list[np.ndarray], fourcc: str = "mp4v", fps: float = 10.0) -> Path:
@@ -116,17 +116,22 @@ def test_a_phone_held_still_gives_one_frame_not_many(tmp_path) -> None:
     assert positions[29] == pytest.approx(145 / np.hypot(160, 120), rel=0.1)
 
 
-def test_near_duplicate_picks_are_dropped() -> None:
-    # a camera that moves 4% of the diagonal in all, asked for 8 frames: windows of 0.5%
+def test_near_duplicate_picks_are_dropped_and_made_up_elsewhere() -> None:
+    # a camera that moves 4% of the diagonal in all, asked for 8 frames: runs 0.5% apart
     motion = np.linspace(0.0, 0.04, 41)
     sharp = 1.0 + np.random.default_rng(0).random(41)
-    pick = pick_by_motion(sharp, motion, 8, blur_floor=0.15, min_motion=0.01)
+    pick = pick_spread(sharp, 8, blur_floor=0.15, motion=motion, min_motion=0.01)
     assert np.diff(motion[pick.chosen]).min() >= 0.01 - 1e-12
     assert len(pick.chosen) <= 5 and pick.near_duplicates >= 3
-    # a jump across two windows is made up in the widest gap, not left short
-    motion = np.concatenate([np.linspace(0, 0.3, 31), np.linspace(0.7, 1.0, 31)])
-    pick = pick_by_motion(np.ones(62), motion, 10, blur_floor=0.15, min_motion=0.01)
-    assert len(pick.chosen) == 10 and pick.filled >= 1 and np.diff(motion[pick.chosen]).min() >= 0.01
+    # runs of only blurred frames are made up in the widest gaps along the path, not left short
+    motion = np.linspace(0.0, 1.0, 60)
+    sharp = np.ones(60)
+    sharp[20:40] = 0.05
+    pick = pick_spread(sharp, 6, blur_floor=0.15, motion=motion, min_motion=0.01)
+    assert len(pick.chosen) == 6 and pick.filled == 2 and pick.blurred == 20
+    assert not any(20 <= i < 40 for i in pick.chosen)
+    # photos: every usable one when there are few, no motion involved
+    assert pick_spread(sharp[15:25], 50, blur_floor=0.15).chosen == [0, 1, 2, 3, 4]
 
 
 def test_rotation_metadata_is_applied(tmp_path) -> None:
@@ -134,12 +139,7 @@ def test_rotation_metadata_is_applied(tmp_path) -> None:
     frames = pan(texture(2), [4 * i for i in range(12)], noise=0.0)
     for f in frames:
         f[:20, :20] = (0, 0, 255)  # a red mark in the stored top-left corner
-    video = write_video(tmp_path / "portrait.mp4", frames)
-    data = bytearray(video.read_bytes())
-    at = data.find(b"tkhd")
-    matrix_at = at + 4 + (32 if data[at + 4] == 1 else 20) + 4 + 16  # version/flags, times, ids, reserved...
-    data[matrix_at:matrix_at + 36] = struct.pack(">9i", 0, 65536, 0, -65536, 0, 0, 0, 0, 1 << 30)
-    video.write_bytes(bytes(data))
+    video = tag_rotation(write_video(tmp_path / "portrait.mp4", frames), 90)
 
     report = import_capture(video, tmp_path / "cap", ImportConfig(frames=4, poses=False), progress=False)
     assert report.rotation == 90 and report.source_size == (120, 160)
