@@ -168,13 +168,14 @@ def main() -> None:
     if not (args.fox / "transforms.json").is_file():
         raise SystemExit(f"{args.fox}: no transforms.json (instant-ngp's data/nerf/fox expected)")
     args.work.mkdir(parents=True, exist_ok=True)
-    results = {}
+    record = args.work / "bench_import.json"
+    results = json.loads(record.read_text()) if record.is_file() else {}  # one part at a time keeps the other's
     if args.part in ("fox", "all"):
         results["fox"] = bench_fox(args.fox, args.work, args.frames)
     if args.part in ("time", "all"):
         results["time"] = bench_time(args.fox, args.work, args.seconds, args.time_frames)
-    (args.work / "bench_import.json").write_text(json.dumps(results, indent=2))
-    print(f"wrote {args.work / 'bench_import.json'}")
+    record.write_text(json.dumps(results, indent=2))
+    print(f"wrote {record}")
 
 
 if __name__ == "__main__":
