@@ -197,7 +197,7 @@ def timing(out: Path, views: int) -> dict:
 def retrain(root: Path, out: Path, args) -> dict:
     from labelsynth.capture.masks import read_mask
     from labelsynth.evaluation.metrics import score_frames
-    from labelsynth.evaluation.segment import segment_capture
+    from labelsynth.train.segment import segment_capture
     from labelsynth.classes import ClassMap
     from labelsynth.train import TrainConfig, train
 

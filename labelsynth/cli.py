@@ -90,6 +90,23 @@ def poses(
     typer.echo(report.summary())
 
 
+@app.command("import")
+@friendly_errors
+def import_(
+    source: Path = typer.Argument(..., metavar="VIDEO_OR_FOLDER", help="A video (MP4, MOV, MKV, AVI, WebM) or a folder of photos."),
+    out: Path = typer.Option(..., "--out", help="Capture folder to create (images/, transforms.json, import.json)."),
+    frames: int = typer.Option(50, min=1, help="Frames to keep: a video must give this many usable ones; a folder keeps at most this many."),
+    max_side: int = typer.Option(1280, "--max-side", min=16, help="Long side of the written frames in pixels (never enlarged)."),
+    poses: bool = typer.Option(True, "--poses/--no-poses", help="Estimate camera poses with pycolmap (as `labelsynth poses`)."),
+    force: bool = typer.Option(False, help="Replace OUT if it exists."),
+) -> None:
+    """Make a capture from a phone video or a folder of photos: sharp, distinct frames, resized and posed."""
+    from .capture.video import ImportConfig, import_capture
+
+    report = import_capture(source, out, ImportConfig(frames=frames, max_side=max_side, poses=poses), force=force)
+    typer.echo(report.summary())
+
+
 @app.command()
 @friendly_errors
 def expand(
@@ -210,7 +227,7 @@ def segment(
     force: bool = typer.Option(False, help="With --into-capture: replace existing predictions."),
 ) -> None:
     """Run a 2D ONNX segmenter over every frame (the "2D" baseline) and write class-id masks."""
-    from .evaluation.segment import resolve_out_dir, segment_capture
+    from .train.segment import resolve_out_dir, segment_capture
 
     out_dir = resolve_out_dir(capture, out, into_capture)
     report = segment_capture(

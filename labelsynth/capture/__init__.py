@@ -2,7 +2,8 @@
 
 ``load_capture`` is the entry point; ``check_capture`` decodes every input a run will read
 before it trains; ``estimate_poses`` (``poses``) gives a capture without cameras its poses by
-pycolmap structure-from-motion; ``list_images`` / ``read_image`` / ``read_mask`` / ``write_mask`` are the
+pycolmap structure-from-motion; ``import_capture`` (``import``) makes a capture from a video or
+a folder of photos; ``list_images`` / ``read_image`` / ``read_mask`` / ``write_mask`` are the
 one lister, pixel readers and mask writer shared by every command and the outputs; ``select_frames`` reads the ``annotated_frames`` spec.
 Nothing here ever writes into a capture.
 """
@@ -16,6 +17,7 @@ from .model import Capture, Frame, SceneNormalization
 from .normalize import region_of_interest
 from .poses import PoseReport, estimate_poses
 from .select import select_frames
+from .video import ImportConfig, ImportReport, import_capture
 
 __all__ = [
     "Capture",
@@ -24,10 +26,13 @@ __all__ = [
     "CheckReport",
     "ExtraMask",
     "Frame",
+    "ImportConfig",
+    "ImportReport",
     "PoseReport",
     "SceneNormalization",
     "check_capture",
     "estimate_poses",
+    "import_capture",
     "list_images",
     "load_capture",
     "read_image",

@@ -5,7 +5,8 @@ NeRF-synthetic layout, which has no plain ``transforms.json``); ``cameras_sphere
 NeuS / IDR layout of DTU and BlendedMVS, ``capture.neus``); a COLMAP model in ``sparse/0``.
 Without any, the error tells the user to run ``labelsynth poses CAPTURE``.
 
-Expert masks come from ``annotations/`` (by image stem) or, in a NeuS capture, from its
+Expert masks come from ``annotations/`` (by image stem; PNG masks, or a CVAT "Segmentation
+mask 1.1" zip or a COCO instances JSON read in place: ``capture.archives``) or, in a NeuS capture, from its
 ``mask/`` (exact object masks, paired by sorted order). A NeuS capture with an
 ``annotations/`` folder of masks learns from that folder alone: mask/ is ignored with a
 warning, since the user made annotations/ on purpose. ``annotated_frames``
@@ -22,6 +23,7 @@ from pathlib import Path
 
 from ..classes import CLASSES_FILE, ClassMap
 from ..errors import CaptureError
+from .archives import ARCHIVE_SUFFIXES, archive_masks
 from .colmap import find_sparse_model, read_colmap
 from .images import image_size
 from .masks import BINARY_OBJECT_ID, MASK_EXTENSIONS, color_table_for, mask_size
@@ -98,7 +100,7 @@ def _attach_masks(root: Path, posed: PosedFrames, classes: ClassMap, classes_jso
     """Point each frame at its annotation and prediction masks (in place). An annotations/
     folder overrides the layout's own masks, since two teaching sources would disagree; a mask
     without a frame is an error, as its name is likely a typo."""
-    found = {folder: _mask_files(root / folder) for folder in MASK_FOLDERS}
+    found = {folder: _mask_files(root / folder, classes) for folder in MASK_FOLDERS}
     if posed.mask_kinds and found["annotations"]:
         layout_masks = ", ".join(f"{p.name}/" for p in posed.mask_kinds)
         warnings.warn(f"{root / 'annotations'}: these annotations teach; the {layout_masks} masks are ignored",
@@ -200,8 +202,10 @@ def _check_unique_names(frames: list[Frame], root: Path) -> None:
         seen[f.name] = f.image_path
 
 
-def _mask_files(folder: Path) -> dict[str, Path]:
-    """stem -> mask path for the PNGs in ``folder`` (hidden files and non-images ignored)."""
+def _mask_files(folder: Path, classes: ClassMap) -> dict[str, Path]:
+    """stem -> mask path for the PNGs in ``folder`` (hidden files and other files ignored) and
+    for the masks inside a CVAT "Segmentation mask 1.1" zip or a COCO instances JSON there
+    (``capture.archives``: paths below that file)."""
     if not folder.is_dir():
         return {}
     found: dict[str, Path] = {}
@@ -210,9 +214,14 @@ def _mask_files(folder: Path) -> dict[str, Path]:
             continue
         if p.suffix.lower() in LOSSY_EXTENSIONS:
             raise CaptureError(f"{p}: masks must be PNG (JPEG compression changes class ids at edges)")
-        if p.suffix not in MASK_EXTENSIONS:
+        if p.suffix.lower() in ARCHIVE_SUFFIXES:
+            masks = archive_masks(p, classes)
+        elif p.suffix in MASK_EXTENSIONS:
+            masks = {p.stem: p}
+        else:
             continue
-        if p.stem in found:
-            raise CaptureError(f"{p}: two masks for frame '{p.stem}' ({found[p.stem].name} and {p.name})")
-        found[p.stem] = p
+        for stem, path in masks.items():
+            if stem in found:
+                raise CaptureError(f"{path}: two masks for frame '{stem}' ({found[stem]} and {path})")
+            found[stem] = path
     return found
