@@ -189,12 +189,12 @@ def report(
 ) -> None:
     """Rebuild OUT/report.json, OUT/report.html and the labelled mesh from a finished expand."""
     from .pipeline import rebuild_report
-
     from .rundir import RunFolder
 
     rep = rebuild_report(out, device=device, mesh_format=mesh_format, mm_per_unit=mm_per_unit, loo=loo)
     flagged = rep["summary"]["flagged"]
-    typer.echo(f"wrote {RunFolder(out).report_json} and {RunFolder(out).report_html}")
+    run = RunFolder(out)
+    typer.echo(f"wrote {run.report_json} and {run.report_html}")
     typer.echo(f"{len(rep['frames'])} frames, {len(flagged)} flagged" + (f": {', '.join(flagged)}" if flagged else ""))
 
 
