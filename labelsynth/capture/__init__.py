@@ -1,6 +1,6 @@
 """Capture folders in: frames, cameras, images, masks, classes and the region of interest.
 
-``load_capture`` is the entry point; ``check_capture`` decodes every input a run will read
+``load_capture`` is the entry point (``find_pose_source`` / ``is_capture``: what it accepts as a capture folder); ``check_capture`` decodes every input a run will read
 before it trains; ``estimate_poses`` (``poses``) gives a capture without cameras its poses by
 pycolmap structure-from-motion; ``import_capture`` (``import``) makes a capture from a video or
 a folder of photos; ``list_images`` / ``read_image`` / ``read_mask`` / ``write_mask`` are the
@@ -11,7 +11,7 @@ Nothing here ever writes into a capture.
 from ..errors import CaptureError, CheckError
 from .check import CheckReport, ExtraMask, check_capture
 from .images import list_images, read_image
-from .load import load_capture, validate_capture
+from .load import find_pose_source, is_capture, load_capture, validate_capture
 from .masks import read_mask, write_mask
 from .model import Capture, Frame, SceneNormalization
 from .normalize import region_of_interest
@@ -32,7 +32,9 @@ __all__ = [
     "SceneNormalization",
     "check_capture",
     "estimate_poses",
+    "find_pose_source",
     "import_capture",
+    "is_capture",
     "list_images",
     "load_capture",
     "read_image",

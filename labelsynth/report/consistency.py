@@ -24,7 +24,7 @@ from ..cameras import Camera
 from ..capture.model import Capture
 from ..classes import IGNORE_ID, ClassMap
 from ..classes import WOUND_BED
-from ..evaluation.metrics import frame_counts
+from ..metrics import Counts, frame_counts
 from ..progress import track
 from ..render.renderer import FieldRenderer
 from ..semantics.head import SemanticHead
@@ -99,10 +99,10 @@ def surface_labels(caster, camera_unit: Camera, mask: np.ndarray, max_side: int 
                          label_img, points[keep], small[keep].astype(np.uint8))
 
 
-def _pair_counts(a: SurfaceLabels, b: SurfaceLabels, wound_ids: np.ndarray) -> tuple[int, int, int, int]:
-    """(tp, fp, fn, shared) of the wound bed: a's labelled points seen by b, a's labels as truth."""
+def _pair_counts(a: SurfaceLabels, b: SurfaceLabels, wound_ids: np.ndarray) -> tuple[Counts, int]:
+    """(wound-bed counts, shared points): a's labelled points seen by b, a's labels as truth."""
     if len(a.points) == 0:
-        return 0, 0, 0, 0
+        return Counts(), 0
     cam = b.camera
     uv, depth = cam.project(a.points)
     u = np.floor(uv[:, 0]).astype(np.int64)
@@ -114,12 +114,12 @@ def _pair_counts(a: SurfaceLabels, b: SurfaceLabels, wound_ids: np.ndarray) -> t
     visible = b.hit[v, u] & (np.abs(b.depth[v, u] - d) < tol)
     idx, u, v = idx[visible], u[visible], v[visible]
     if len(idx) == 0:
-        return 0, 0, 0, 0
+        return Counts(), 0
     lb = b.label_img[v, u]
     ok = lb != IGNORE_ID
     la, lb = a.labels[idx[ok]], lb[ok]
     wa, wb = np.isin(la, wound_ids), np.isin(lb, wound_ids)
-    return int((wa & wb).sum()), int((~wa & wb).sum()), int((wa & ~wb).sum()), int(ok.sum())
+    return Counts(tp=int((wa & wb).sum()), fp=int((~wa & wb).sum()), fn=int((wa & ~wb).sum())), int(ok.sum())
 
 
 def pairwise_consistency(
@@ -142,13 +142,11 @@ def pairwise_consistency(
     mat: list[list[float | None]] = [[1.0 if i == j else None for j in range(n)] for i in range(n)]
     for i in range(n):
         for j in range(i + 1, n):
-            tp1, fp1, fn1, s1 = _pair_counts(surf[i], surf[j], wound_ids)
-            tp2, fp2, fn2, s2 = _pair_counts(surf[j], surf[i], wound_ids)
-            if s1 + s2 < MIN_SHARED_POINTS:
+            counts_ij, shared_ij = _pair_counts(surf[i], surf[j], wound_ids)
+            counts_ji, shared_ji = _pair_counts(surf[j], surf[i], wound_ids)
+            if shared_ij + shared_ji < MIN_SHARED_POINTS:
                 continue
-            tp, fpfn = tp1 + tp2, fp1 + fn1 + fp2 + fn2
-            dice = 1.0 if tp + fpfn == 0 else 2 * tp / (2 * tp + fpfn)
-            mat[i][j] = mat[j][i] = float(dice)
+            mat[i][j] = mat[j][i] = (counts_ij + counts_ji).dice
     return mat
 
 

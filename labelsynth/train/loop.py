@@ -24,6 +24,7 @@ import torch.nn.functional as F
 from .. import __version__
 from ..classes import IGNORE_ID, ClassMap
 from ..device import optimiser_options, pick_device
+from ..metrics import Counts
 from ..outdir import atomic_file, write_text_atomic
 from ..progress import console, make_progress
 from .contract import INPUT_NAME, OUTPUT_NAME, format_input_size, normalize, parse_input_size
@@ -220,11 +221,10 @@ def evaluate(model, split: Split, classes: ClassMap, cfg: TrainConfig, multiple:
             losses.append(float(loss))
         counts += confusion_counts(logits.argmax(1)[0], t[0], classes.num_classes)
     model.train()
-    inter, npred, ntrue = counts.double()
     dice = {}
-    for i, name in enumerate(classes.names):
-        denom = float(npred[i] + ntrue[i])
-        dice[name] = None if denom == 0 else float(2 * inter[i] / denom)
+    for name, (tp, npred, ntrue) in zip(classes.names, counts.T.tolist()):
+        c = Counts(tp=tp, fp=npred - tp, fn=ntrue - tp)
+        dice[name] = c.dice if c.present or c.predicted else None
     return (float(np.mean(losses)) if losses else None), dice
 
 

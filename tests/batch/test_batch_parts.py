@@ -25,8 +25,9 @@ from labelsynth.rundir import RunFolder, RunInfo
 
 def _capture(folder: Path, pose: str = "transforms.json") -> Path:
     folder.mkdir(parents=True)
-    if pose == "sparse/0":
-        (folder / "sparse" / "0").mkdir(parents=True)
+    if pose.startswith("sparse"):  # a COLMAP model in sparse/0 or directly in sparse/
+        (folder / pose).mkdir(parents=True)
+        (folder / pose / "cameras.txt").write_text("# Camera list\n")
     else:
         (folder / pose).write_text("{}")
     (folder / "images").mkdir()
@@ -46,15 +47,35 @@ def test_discover_finds_captures_but_not_inside_them_nor_out(tmp_path):
     _capture(root / "p2" / "wound", "sparse/0")
     _capture(root / "p3", "cameras_sphere.npz")
     _capture(root / "p3" / "nested")  # inside a capture: not searched
+    _capture(root / "p4", "sparse")  # a COLMAP model directly in sparse/, as load_capture reads it
     _capture(root / "out" / "captures" / "old")  # the batch's own OUT
     (root / "empty").mkdir()
+    (root / "empty_model" / "sparse" / "0").mkdir(parents=True)  # no model in it: load_capture would refuse
     (root / ".hidden").mkdir()
     _capture(root / ".hidden" / "c")
     assert [p.relative_to(root).as_posix() for p in find_captures(root, exclude=root / "out")] == \
-        ["p1/wound", "p2/wound", "p3"]
+        ["p1/wound", "p2/wound", "p3", "p4"]
     jobs = discover(root, root / "out")
-    assert [j.name for j in jobs] == ["p1__wound", "p2__wound", "p3"]  # same folder name: the path decides
+    assert [j.name for j in jobs] == ["p1__wound", "p2__wound", "p3", "p4"]  # same folder name: the path decides
     assert [j.name for j in discover(root / "p3")] == ["p3"]  # a capture is its own root
+
+
+def test_a_colmap_model_directly_in_sparse_is_found_and_loads(tmp_path):
+    """Batch and the loaders share one rule (``capture.load.is_capture``): a capture whose COLMAP
+    model is in ``sparse/`` (no ``0/``) is found by discovery, listed, and loads."""
+    from labelsynth.capture import load_capture
+
+    from ..capture.test_capture_colmap import make_colmap_capture
+
+    cap = make_colmap_capture(tmp_path / "root" / "colmap_flat")
+    (cap / "sparse" / "0").rename(cap / "sparse_model")
+    (cap / "sparse").rmdir()
+    (cap / "sparse_model").rename(cap / "sparse")
+    assert (cap / "sparse" / "cameras.txt").is_file()
+    assert find_captures(tmp_path / "root") == [cap]
+    (tmp_path / "list.txt").write_text("root/colmap_flat\n")
+    assert [j.path for j in discover(tmp_path / "list.txt")] == [cap]
+    assert load_capture(cap).names == ["a", "b"]
 
 
 def test_capture_list_file(tmp_path):
