@@ -383,10 +383,10 @@ class RunFolder:
             raise RunFolderError(f"{cap}: capture folder not found")
         return info, load_capture(cap, annotated_frames=info.annotated_frames)
 
-    def check_fits(self, fitted: FittedField, capture: Capture) -> None:
-        """The field (this OUT's field.pt) has a semantic head and was fitted to ``capture``:
-        the same class table and cameras; otherwise one line naming both."""
-        if fitted.head is None:
+    def check_fits(self, fitted: FittedField, capture: Capture, *, need_head: bool = True) -> None:
+        """The field (this OUT's field.pt) was fitted to ``capture`` (the same class table and
+        cameras) and, with ``need_head``, has a semantic head; otherwise one line naming both."""
+        if need_head and fitted.head is None:
             raise RunFolderError(f"{self.field_path}: the field has no semantic head (its expand did not finish)")
         if fitted.classes.to_json() != capture.classes.to_json():
             raise RunFolderError(f"{capture.root}: its class table differs from the field's ({self.field_path}); "

@@ -87,3 +87,29 @@ def test_the_report_summary_reader_forgives(tmp_path):
     assert run.read_report_summary() == {}
     run.report_json.write_text(json.dumps({"summary": {"flagged": ["a"]}}))
     assert run.read_report_summary() == {"flagged": ["a"]}
+
+
+def test_a_field_fits_only_the_capture_it_was_fitted_to(tmp_path):
+    from types import SimpleNamespace
+
+    import numpy as np
+
+    from labelsynth.capture.model import SceneNormalization
+    from labelsynth.classes import ClassInfo, ClassMap
+
+    run = RunFolder(tmp_path / "out")
+    norm = SceneNormalization(center=np.zeros(3), scale=1.0)
+    capture = SimpleNamespace(root=tmp_path / "cap", classes=ClassMap.default(), normalization=norm)
+    fitted = SimpleNamespace(head=object(), classes=ClassMap.default(), normalization=norm)
+    run.check_fits(fitted, capture)
+    geometry_only = SimpleNamespace(head=None, classes=ClassMap.default(), normalization=norm)
+    run.check_fits(geometry_only, capture, need_head=False)  # what `expand --geometry` will hand over
+    with pytest.raises(RunFolderError, match=r"field\.pt: the field has no semantic head"):
+        run.check_fits(geometry_only, capture)
+    moved = SimpleNamespace(head=object(), classes=ClassMap.default(),
+                            normalization=SceneNormalization(center=np.ones(3), scale=1.0))
+    with pytest.raises(RunFolderError, match="its cameras are not those the field was fitted to"):
+        run.check_fits(moved, capture)
+    two = ClassMap((ClassInfo(0, "background", (0, 0, 0)), ClassInfo(1, "wound", (255, 0, 0), True)))
+    with pytest.raises(RunFolderError, match="its class table differs from the field's"):
+        run.check_fits(SimpleNamespace(head=object(), classes=two, normalization=norm), capture)
