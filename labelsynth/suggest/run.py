@@ -13,6 +13,7 @@ OUT (built in OUT.partial, renamed when complete) holds:
 from __future__ import annotations
 
 import json
+import shlex
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -47,22 +48,35 @@ class SuggestResult:
     spread: list[str]
     spread_coverage: float
     seconds: dict[str, float] = field(default_factory=dict)
+    options: SuggestOptions | None = None
 
     @property
     def names(self) -> list[str]:
         return [p.name for p in self.picks]
 
     def summary(self) -> str:
-        lines = [f"annotate these {len(self.picks)} frames (in order of the surface they add):"]
+        n = len(self.picks)
+        lines = [f"annotate {'this frame' if n == 1 else f'these {n} frames'} (in order of the surface they add):"]
         lines += [f"  {i + 1}. {p.name}  +{100 * p.gain:.1f}%  (together {100 * p.coverage:.1f}%)"
                   for i, p in enumerate(self.picks)]
         lines.append(f"they show {100 * self.coverage:.1f}% of the surface the video shows; "
                      f"spread:{len(self.picks)} ({', '.join(self.spread)}) shows {100 * self.spread_coverage:.1f}%")
         lines.append(f"wrote {self.out / SUGGEST_JSON}, {self.out / SHEET_PNG} and the geometry "
                      f"{RunFolder(self.out).field_path} ({sum(self.seconds.values()):.0f} s)")
-        lines.append(f"then: labelsynth expand {self.capture} --out OUT --geometry {self.out} "
-                     "(same --recipe, --set and --seed)")
+        lines.append(f"then: {self.expand_command()}")
         return "\n".join(lines)
+
+    def expand_command(self, out: str = "OUT") -> str:
+        """The ``expand`` that reuses this geometry once the named frames are annotated."""
+        opts = self.options or SuggestOptions(annotate=len(self.picks))
+        words = ["labelsynth", "expand", str(self.capture), "--out", out, "--geometry", str(self.out)]
+        if opts.recipe != "default":
+            words += ["--recipe", opts.recipe]
+        for item in opts.overrides:
+            words += ["--set", item]
+        if opts.seed:
+            words += ["--seed", str(opts.seed)]
+        return " ".join(shlex.quote(w) for w in words)
 
 
 def default_out(capture_dir: str | Path) -> Path:
@@ -143,7 +157,7 @@ def suggest(
 
         result = SuggestResult(out=out, capture=capture_dir, picks=picks, coverage=picks[-1].coverage,
                                spread=[capture.names[i] for i in spread], spread_coverage=views.coverage(spread),
-                               seconds=seconds)
+                               seconds=seconds, options=opts)
         write_text_atomic(partial / SUGGEST_JSON, json.dumps(_record(result, views, curves, opts, rec, dev, gstats,
                                                                      mesh_faces=len(mesh.faces), cfg=cfg), indent=2, default=float))
     return result
@@ -180,6 +194,7 @@ def _record(result: SuggestResult, views, curves, opts: SuggestOptions, rec, dev
         "recipe": rec.name, "overrides": opts.overrides, "seed": opts.seed, "device": str(dev),
         "geometry": gstats,
         "seconds": result.seconds,
+        "expand": result.expand_command(),
     }
 
 

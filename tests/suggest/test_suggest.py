@@ -59,6 +59,8 @@ def test_suggest_names_the_frames_that_show_most_and_keeps_the_geometry(suggeste
     assert 0 < data["surface"]["seen"] <= data["surface"]["samples"]
     for name in names:
         assert name in res.stdout
+    assert f"labelsynth expand {capture} --out OUT --geometry {out} --recipe fast --set geometry.iterations=250" \
+        in res.stdout and data["expand"].startswith("labelsynth expand")
     # the geometry: a field without a head, with what it was fitted on
     fitted = load_field(RunFolder(out).field_path, torch.device("cpu"))
     assert fitted.head is None and fitted.fitted_on is not None
