@@ -9,7 +9,9 @@ import trimesh
 from labelsynth.cameras import Camera, look_at
 from labelsynth.capture.select import select_frames
 from labelsynth.errors import LabelsynthError
+from labelsynth.options import SuggestOptions
 from labelsynth.render.surface import SurfaceCaster
+from labelsynth.suggest import SuggestResult
 from labelsynth.suggest.coverage import CoverageConfig, surface_views, view_density
 
 SIZE = 32
@@ -95,3 +97,23 @@ def test_nothing_to_cover_is_one_line():
     away = Camera(SIZE, SIZE, 40.0, 40.0, SIZE / 2, SIZE / 2, look_at(np.array([3.0, 0, 0]), np.array([6.0, 0, 0])))
     with pytest.raises(LabelsynthError, match="no frame sees the fitted surface"):
         surface_views(ball, [away], ["a"], progress=False)
+
+
+@pytest.mark.parametrize("k", range(1, 7))
+def test_every_k_from_one_to_six_names_k_frames(k, tmp_path):
+    """K = 1..6 are all choices: K distinct frames, the first K of the longest choice (so a
+    suggest run for 6 answers every smaller K), coverage growing with K, printed as such."""
+    ball = trimesh.creation.icosphere(subdivisions=3, radius=0.6)
+    cams, names = _one_sided_path()
+    views = surface_views(ball, cams, names, CoverageConfig(samples=2000), progress=False)
+    picks, longest = views.greedy(k), views.greedy(6)
+    assert len({p.index for p in picks}) == k and [p.name for p in picks] == [p.name for p in longest[:k]]
+    assert all(a.coverage <= b.coverage + 1e-12 for a, b in zip(longest, longest[1:]))
+    spread = [names.index(n) for n in select_frames(f"spread:{k}", names)]
+    result = SuggestResult(out=tmp_path / "s", capture=tmp_path / "cap", picks=picks, coverage=picks[-1].coverage,
+                           spread=[names[i] for i in spread], spread_coverage=views.coverage(spread),
+                           options=SuggestOptions(annotate=k))
+    text = result.summary()
+    assert text.startswith("annotate this frame" if k == 1 else f"annotate these {k} frames")
+    assert all(f"{i + 1}. {p.name}" in text for i, p in enumerate(picks)) and f"spread:{k} (" in text
+    assert result.expand_command() == f"labelsynth expand {tmp_path / 'cap'} --out OUT --geometry {tmp_path / 's'}"
