@@ -138,14 +138,14 @@ def run_case(name: str, case: Path, args) -> dict:
     work = args.work / name
     suggest_out = work / "suggest"
     kmax = max(args.ks)
-    if not (suggest_out / "suggest.json").is_file() or read_suggestion(suggest_out)["annotate"] != kmax:
+    if not (suggest_out / "suggest.json").is_file() or read_suggestion(suggest_out)["annotate"] < kmax:
         t0 = time.time()
         suggest(case / "capture", SuggestOptions(annotate=kmax, recipe=args.recipe, overrides=args.set,
                                                  device=args.device), suggest_out, force=True, progress=False)
         log(f"{name}: suggest fitted the geometry and ranked the frames in {time.time() - t0:.0f} s")
     sug = read_suggestion(suggest_out)
     names = load_capture(case / "capture").names
-    ranked = [f["name"] for f in sug["frames"]]
+    ranked = [f["name"] for f in sug["frames"]]  # greedy: its first K are its choice for K (a run per --ks shares it)
     rows = {}
     for k in args.ks:
         rng = np.random.default_rng([args.seed, k])
@@ -293,11 +293,14 @@ def main() -> None:
     ap.add_argument("--seed", type=int, default=0, help="seed of the random subsets")
     ap.add_argument("--timing", action="store_true", help="also the --geometry timing on the 50-frame wound")
     ap.add_argument("--timing-only", action="store_true")
+    ap.add_argument("--json", default=None, help="the summary's file name under --work (default bench_suggest.json, "
+                    "bench_suggest_timing.json with --timing-only): several runs of disjoint --cases can share --work")
     ap.add_argument("--timing-suggest", action="store_true", help="with the timing: also suggest --annotate 4 on that wound")
     args = ap.parse_args()
     args.ks = [int(k) for k in args.ks.split(",")]
     args.work.mkdir(parents=True, exist_ok=True)
     summary: dict = {"settings": {k: (str(v) if isinstance(v, Path) else v) for k, v in vars(args).items()}}
+    report = args.work / (args.json or ("bench_suggest_timing.json" if args.timing_only else "bench_suggest.json"))
     if not args.timing_only:
         results = []
         for name in [c for c in args.cases.split(",") if c]:
@@ -308,12 +311,11 @@ def main() -> None:
                 layout, seed = SYNTH_CASES[name]
                 case = synth_case(folder, layout, seed, args.frames, args.width, args.height)
             results.append(run_case(name, case, args))
-            (args.work / "bench_suggest.json").write_text(json.dumps({**summary, "cases": results}, indent=1, default=str))
+            report.write_text(json.dumps({**summary, "cases": results}, indent=1, default=str))
         summary["cases"] = results
         print(table(results))
     if args.timing or args.timing_only:
         summary["timing"] = timing(args)
-    report = args.work / ("bench_suggest_timing.json" if args.timing_only else "bench_suggest.json")
     report.write_text(json.dumps(summary, indent=1, default=str))
     print(f"wrote {report}")
 
