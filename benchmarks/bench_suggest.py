@@ -188,7 +188,11 @@ def _coverage(suggest_out: Path, chosen: list[str]) -> float:
                                                 caster=view.caster(), progress=False)
         views = _VIEWS[suggest_out]
         known[key] = views.coverage([views.names.index(n) for n in chosen])
-        cache.write_text(json.dumps(known, indent=1))
+        if cache.is_file():  # another run (other --ks) may have added to it meanwhile
+            known = {**json.loads(cache.read_text()), key: known[key]}
+        tmp = cache.with_name(f"{cache.name}.{os.getpid()}")
+        tmp.write_text(json.dumps(known, indent=1))
+        os.replace(tmp, cache)
     return known[key]
 
 
