@@ -152,6 +152,10 @@ def run_case(name: str, case: Path, args) -> dict:
         choices = {"suggested": sorted(ranked[:k]), "spread": select_frames(f"spread:{k}", names)}
         for r in range(args.random):
             choices[f"random{r}"] = sorted(names[i] for i in rng.choice(len(names), k, replace=False))
+        if args.only:  # one process per choice: expand and score those only (a later run without --only tabulates)
+            for c in args.only:
+                run_choice(case, suggest_out, work / f"K{k}" / c, choices[c], args)
+            continue
         res = {c: run_choice(case, suggest_out, work / f"K{k}" / c, chosen, args) for c, chosen in choices.items()}
         randoms = [res[c] for c in res if c.startswith("random")]
         worst = min(randoms, key=lambda r: r["wound_bed"]) if randoms else None
@@ -295,6 +299,8 @@ def main() -> None:
     ap.add_argument("--set", action="append", default=[])
     ap.add_argument("--device", default="cpu")
     ap.add_argument("--seed", type=int, default=0, help="seed of the random subsets")
+    ap.add_argument("--only", default="", help="comma list of choices (suggested, spread, random0, ...) to expand and "
+                    "score, without the table: runs in parallel fill the cache, a run without --only tabulates")
     ap.add_argument("--timing", action="store_true", help="also the --geometry timing on the 50-frame wound")
     ap.add_argument("--timing-only", action="store_true")
     ap.add_argument("--json", default=None, help="the summary's file name under --work (default bench_suggest.json, "
@@ -302,6 +308,7 @@ def main() -> None:
     ap.add_argument("--timing-suggest", action="store_true", help="with the timing: also suggest --annotate 4 on that wound")
     args = ap.parse_args()
     args.ks = [int(k) for k in args.ks.split(",")]
+    args.only = [c for c in args.only.split(",") if c]
     args.work.mkdir(parents=True, exist_ok=True)
     summary: dict = {"settings": {k: (str(v) if isinstance(v, Path) else v) for k, v in vars(args).items()}}
     report = args.work / (args.json or ("bench_suggest_timing.json" if args.timing_only else "bench_suggest.json"))
@@ -315,8 +322,13 @@ def main() -> None:
                 layout, seed = SYNTH_CASES[name]
                 case = synth_case(folder, layout, seed, args.frames, args.width, args.height)
             results.append(run_case(name, case, args))
+            if args.only:
+                continue
             report.write_text(json.dumps({**summary, "cases": results}, indent=1, default=str))
         summary["cases"] = results
+        if args.only:
+            print(f"expanded and scored {', '.join(args.only)} (no table: run again without --only)")
+            return
         print(table(results))
     if args.timing or args.timing_only:
         summary["timing"] = timing(args)
