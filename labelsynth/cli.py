@@ -60,7 +60,8 @@ def synth(
     seed: int = typer.Option(0, help="Random seed; the same seed gives the same capture."),
     layout: str = typer.Option(
         "one-sided", help="one-sided (a hand-held arc above a wound on a limb or torso) | all-around "
-        "(a wound wrapped around a limb, filmed in one turn around it).",
+        "(a wound wrapped around a limb, filmed in one turn around it) | all-around-uneven (the same turn, dwelling on one "
+        "side of the limb for 3/4 of the frames and passing the other side quickly).",
     ),
     force: bool = typer.Option(False, help="Replace OUT if it exists."),
 ) -> None:
@@ -129,6 +130,11 @@ def expand(
         help="Write the consistency report and the labelled mesh (its leave-one-out refits take minutes); "
              "--no-report writes masks, labels.h5, field.pt and run.json only (`labelsynth report OUT` adds it later).",
     ),
+    geometry: Optional[Path] = typer.Option(
+        None, "--geometry",
+        help="Reuse the geometry of `labelsynth suggest`'s OUT or an earlier expand's OUT (skips stage 1); refused "
+             "unless it was fitted on these images and cameras with the same geometry recipe and seed.",
+    ),
 ) -> None:
     """Fit a 3D semantic field to the capture and render consistent masks for every frame."""
     from .options import ExpandOptions
@@ -137,7 +143,28 @@ def expand(
     options = ExpandOptions(labels=labels, recipe=recipe, device=device, seed=seed, overrides=set_,
                             annotated_frames=annotated_frames, report=report, mesh_format=mesh_format,
                             mm_per_unit=mm_per_unit)
-    result = run_expand(capture, out, options, force=force)
+    result = run_expand(capture, out, options, geometry=geometry, force=force)
+    typer.echo(result.summary())
+
+
+@app.command()
+@friendly_errors
+def suggest(
+    capture: Path = typer.Argument(..., help="Capture folder (images and poses; no annotations needed)."),
+    annotate: int = typer.Option(..., "--annotate", help="How many frames to name for annotation (1..6)."),
+    out: Optional[Path] = typer.Option(None, "--out", help="Folder for field.pt (the geometry), suggest.json and suggest.png (default: CAPTURE-suggest beside the capture)."),
+    recipe: str = typer.Option("default", help="Recipe name (default, fast, quality, paper) or a YAML path; expand --geometry must use the same geometry section."),
+    device: str = typer.Option("auto", help="auto | cpu | cuda"),
+    seed: int = typer.Option(0, help="Random seed (expand --geometry must use the same)."),
+    set_: list[str] = typer.Option([], "--set", help="Override a recipe value, e.g. --set geometry.iterations=500"),
+    force: bool = typer.Option(False, help="Replace OUT if it exists."),
+) -> None:
+    """Fit the geometry (no labels needed) and name the frames that together show the most surface."""
+    from .options import SuggestOptions
+    from .suggest import suggest as run_suggest
+
+    options = SuggestOptions(annotate=annotate, recipe=recipe, device=device, seed=seed, overrides=set_)
+    result = run_suggest(capture, options, out, force=force)
     typer.echo(result.summary())
 
 

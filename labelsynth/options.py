@@ -1,10 +1,12 @@
-"""The options of one run (``expand``, and every capture of a ``batch``): typed, checked when made.
+"""The options of one run (``expand``, every capture of a ``batch``, ``suggest``): typed, checked when made.
 
 ``ExpandOptions`` is what the CLI parses, ``pipeline.expand`` runs and ``batch`` hands each
 capture. A value that is not one of its choices is a one-line ``OptionError`` as soon as the
 options are made; ``ExpandOptions.check`` then checks what needs more than the value (the
 recipe file and every key, type and range in it, the device, the frame selector's syntax)
 before any capture is read, any training step is taken and before OUT or OUT.partial exists.
+``SuggestOptions`` does the same for ``suggest``; both share ``FitOptions`` (recipe, device,
+seed, overrides).
 """
 
 from __future__ import annotations
@@ -82,17 +84,54 @@ def positive_number(value: Any, option: str) -> float:
 
 
 @dataclass
-class ExpandOptions:
-    """Everything that decides one expand besides the capture and OUT (the CLI's expand options)."""
+class FitOptions:
+    """What every command that fits a field shares: how stage 1 (and 2) are fitted."""
 
-    labels: LabelMode | None = None
-    """What teaches; None: both when both folders exist, else whichever exists."""
     recipe: str = "default"
     """A recipe name (``recipes/NAME.yaml``) or a YAML file."""
     device: DeviceChoice = DeviceChoice.AUTO
     seed: int = 0
     overrides: list[str] = field(default_factory=list)
     """``section.key=value`` recipe overrides (``--set``)."""
+
+    def __post_init__(self) -> None:
+        self.device = DeviceChoice.parse(self.device, "--device")
+        if isinstance(self.seed, bool) or not isinstance(self.seed, int) or self.seed < 0:
+            raise OptionError(f"--seed must be a whole number >= 0, not {self.seed!r}")
+        if not isinstance(self.recipe, str) or not self.recipe.strip():
+            raise OptionError(f"--recipe must be a recipe name or a YAML file, not {self.recipe!r}")
+        if self.overrides is None:
+            self.overrides = []
+        if isinstance(self.overrides, str) or not all(isinstance(o, str) for o in self.overrides):
+            raise OptionError("--set takes section.key=value texts")
+        self.overrides = list(self.overrides)
+
+    def replace(self: F, **changes: Any) -> F:
+        """A copy with some options changed (checked again)."""
+        return dataclasses.replace(self, **changes)
+
+    def load_recipe(self) -> Recipe:
+        """The recipe these options name, with their overrides (``recipe.load_recipe``)."""
+        return load_recipe(self.recipe, self.overrides)
+
+    def check(self, *, device: bool = True) -> Recipe:
+        """Check what needs more than the values, before any work: the recipe (file, keys,
+        types, ranges) and (``device``) that the device exists here. Returns the recipe."""
+        recipe = self.load_recipe()
+        if device:
+            pick_device(self.device.value)
+        return recipe
+
+
+F = TypeVar("F", bound=FitOptions)
+
+
+@dataclass
+class ExpandOptions(FitOptions):
+    """Everything that decides one expand besides the capture and OUT (the CLI's expand options)."""
+
+    labels: LabelMode | None = None
+    """What teaches; None: both when both folders exist, else whichever exists."""
     annotated_frames: str | list[str] | None = None
     """Only these frames' annotations teach (``capture.select``); None: all."""
     report: bool = True
@@ -104,33 +143,15 @@ class ExpandOptions:
     def __post_init__(self) -> None:
         if self.labels is not None:
             self.labels = LabelMode.parse(self.labels, "--labels")
-        self.device = DeviceChoice.parse(self.device, "--device")
+        super().__post_init__()
         self.mesh_format = MeshFormat.parse(self.mesh_format, "--mesh-format")
-        if isinstance(self.seed, bool) or not isinstance(self.seed, int) or self.seed < 0:
-            raise OptionError(f"--seed must be a whole number >= 0, not {self.seed!r}")
-        if not isinstance(self.recipe, str) or not self.recipe.strip():
-            raise OptionError(f"--recipe must be a recipe name or a YAML file, not {self.recipe!r}")
-        if self.overrides is None:
-            self.overrides = []
-        if isinstance(self.overrides, str) or not all(isinstance(o, str) for o in self.overrides):
-            raise OptionError("--set takes section.key=value texts")
-        self.overrides = list(self.overrides)
         if self.mm_per_unit is not None:
             self.mm_per_unit = positive_number(self.mm_per_unit, "--mm-per-unit")
 
-    def replace(self, **changes: Any) -> "ExpandOptions":
-        """A copy with some options changed (checked again)."""
-        return dataclasses.replace(self, **changes)
-
-    def load_recipe(self) -> Recipe:
-        """The recipe these options name, with their overrides (``recipe.load_recipe``)."""
-        return load_recipe(self.recipe, self.overrides)
-
     def check(self, *, device: bool = True) -> Recipe:
-        """Check what needs more than the values, before any work: the recipe (file, keys,
-        types, ranges), the frame selector's syntax and (``device``) that the device exists
-        here. Returns the recipe. ``batch`` leaves the device to each worker's node."""
-        recipe = self.load_recipe()
+        """As ``FitOptions.check``, and the frame selector's syntax. ``batch`` leaves the device
+        to each worker's node."""
+        recipe = super().check(device=False)
         if self.annotated_frames is not None:
             check_frame_spec(self.annotated_frames)
         if device:
@@ -143,3 +164,22 @@ class ExpandOptions:
         return {"labels": None if self.labels is None else self.labels.value, "seed": self.seed,
                 "annotated_frames": self.annotated_frames, "report": self.report,
                 "mesh_format": self.mesh_format.value, "mm_per_unit": self.mm_per_unit}
+
+
+MAX_ANNOTATE = 6
+"""The most frames ``suggest`` names (the method learns from 2-4 annotated frames)."""
+
+
+@dataclass
+class SuggestOptions(FitOptions):
+    """The options of ``labelsynth suggest``: how many frames to name, and how stage 1 is fitted
+    (recipe, overrides, device, seed: a later ``expand --geometry`` must use the same)."""
+
+    annotate: int = 3
+    """How many frames to suggest for annotation (1..``MAX_ANNOTATE``)."""
+
+    def __post_init__(self) -> None:
+        k = self.annotate
+        if isinstance(k, bool) or not isinstance(k, int) or not 1 <= k <= MAX_ANNOTATE:
+            raise OptionError(f"--annotate must be a whole number in 1..{MAX_ANNOTATE}, not {k!r}")
+        super().__post_init__()

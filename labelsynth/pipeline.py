@@ -23,15 +23,16 @@ from .capture.model import Capture
 from .device import pick_device
 from .errors import LabelsynthError
 from .export import LabelsWriter, write_masks_png
+from .geometry.fingerprint import GeometryFingerprint, require_unchanged
 from .geometry.sdf import SDFField
 from .geometry.training import RayBank, train_geometry
 from .options import DeviceChoice, ExpandOptions, LabelMode, MeshFormat, positive_number
-from .outdir import building, check_out
+from .outdir import PARTIAL_SUFFIX, building, check_out, partial_path
 from .progress import console, track
 from .recipe import Recipe
 from .render.field import FittedField
 from .render.renderer import FieldRenderer
-from .rundir import RunFolder, RunInfo
+from .rundir import RunFolder, RunInfo, load_field
 from .semantics.fit import HeadFit, fit_head, leave_one_out_heads, scaled_config
 from .semantics.head import SemanticHead
 from .semantics.training import BakedRays, LabelledFrame, bake_semantic_rays
@@ -149,7 +150,43 @@ def fit_geometry(
     grid, gstats = train_geometry(sdf, bank, geo, seed=seed, progress=progress)
     for p in sdf.parameters():
         p.requires_grad_(False)  # the paper's stage 2: geometry frozen
-    return FittedField(sdf, grid, capture.classes, capture.normalization, recipe), {**vars(gstats), "init_shape": init_shape}
+    fitted_on = GeometryFingerprint.of(capture, geo, seed, frames=indices)
+    fitted = FittedField(sdf, grid, capture.classes, capture.normalization, recipe, fitted_on=fitted_on)
+    return fitted, {**vars(gstats), "init_shape": init_shape}
+
+
+def geometry_file(path: str | Path) -> Path:
+    """The field.pt that ``expand --geometry PATH`` reads: PATH itself, or PATH/field.pt for the
+    output folder of ``suggest`` or ``expand``. Cheap (names only); one line if there is none."""
+    path = Path(path)
+    if path.name.endswith(PARTIAL_SUFFIX):
+        raise LabelsynthError(f"--geometry {path}: an unfinished run (a {PARTIAL_SUFFIX} folder); run it again to finish it")
+    if path.is_file():
+        return path
+    field_path = RunFolder(path).field_path
+    if field_path.is_file():
+        return field_path
+    if not path.exists():
+        if partial_path(path).exists():
+            raise LabelsynthError(f"--geometry {path}: not finished (only {partial_path(path)} exists)")
+        raise LabelsynthError(f"--geometry {path}: not found (expected the output folder of labelsynth suggest or "
+                              "expand, or its field.pt)")
+    raise LabelsynthError(f"--geometry {path}: holds no {field_path.name} (expected the output folder of labelsynth "
+                          "suggest or expand)")
+
+
+def reuse_geometry(path: str | Path, capture: Capture, recipe: Recipe, seed: int,
+                   device: torch.device) -> FittedField:
+    """The geometry stored at ``path`` (``geometry_file``) for this capture, recipe and seed, in
+    place of fitting stage 1: refused with one line saying what changed unless it was fitted on
+    this capture's images and cameras with the same ``geometry`` recipe and seed
+    (``geometry.fingerprint``). The field takes this capture's classes and ``recipe``; a head
+    the file holds is dropped."""
+    source = geometry_file(path)
+    stored = load_field(source, device)
+    require_unchanged(stored.fitted_on, capture, where=source, geometry=recipe.geometry, seed=seed)
+    return FittedField(stored.sdf, stored.grid, capture.classes, capture.normalization, recipe,
+                       fitted_on=stored.fitted_on)
 
 
 def fit_semantics(
@@ -182,10 +219,15 @@ def fit_field(
     *,
     seed: int = 0,
     progress: bool = True,
+    geometry: FittedField | None = None,
 ) -> FieldFit:
-    """Both stages of the paper on one capture."""
+    """Both stages of the paper on one capture; with ``geometry`` (a fitted geometry of this
+    capture, e.g. ``reuse_geometry``'s) only the semantic stage, on it."""
     t0 = time.time()
-    geometry, gstats = fit_geometry(capture, recipe, device, seed=seed, progress=progress)
+    if geometry is None:
+        geometry, gstats = fit_geometry(capture, recipe, device, seed=seed, progress=progress)
+    else:
+        gstats = {}
     t1 = time.time()
     fit = fit_semantics(geometry, labelled_frames(capture, labels, recipe), seed=seed, progress=progress)
     t2 = time.time()
@@ -252,6 +294,7 @@ def expand(
     out: str | Path,
     options: ExpandOptions | None = None,
     *,
+    geometry: str | Path | None = None,
     force: bool = False,
     progress: bool = True,
     **values: Any,
@@ -266,23 +309,40 @@ def expand(
     so only ``report=False`` narrows the check to the masks that teach. ``annotated_frames``:
     which frames' annotations teach (``load_capture``); run.json records the chosen names so
     ``labelsynth report`` keeps them.
+
+    ``geometry``: the output folder of ``suggest`` or of an earlier ``expand`` (or its field.pt)
+    whose geometry replaces stage 1 (``reuse_geometry``); refused with one line, before OUT
+    exists, unless it was fitted on this capture's images and cameras with the same geometry
+    recipe and seed, so the masks are those a full expand fitting that geometry writes.
+    run.json's ``geometry_from`` names the file.
     """
     opts = options.replace(**values) if options is not None else ExpandOptions(**values)
     rec = opts.check()
     out = Path(out)
     check_out(out, force)
+    source = geometry_file(geometry) if geometry is not None else None
     capture = load_capture(capture_dir, annotated_frames=opts.annotated_frames)
     mode = resolve_label_mode(capture, opts.labels)
     check = check_capture(capture, labels="both" if opts.report else mode.value)
     check.raise_if_problems()
     dev = pick_device(opts.device.value)
+    reused = None
+    if source is not None:
+        t0 = time.time()
+        reused = reuse_geometry(source, capture, rec, opts.seed, dev)
+        reuse_seconds = time.time() - t0
     with building(out, force=force) as partial:
         run = RunFolder(partial)
         if progress:
             console.print(f"[bold]labelsynth[/] {check.summary()}")
             console.print(f"[bold]labelsynth[/] {len(capture)} frames, labels={mode}, recipe={rec.name}, device={dev}")
-        fit = fit_field(capture, rec, mode, dev, seed=opts.seed, progress=progress)
+            if source is not None:
+                console.print(f"[bold]labelsynth[/] geometry from {source} (fitted on these images and cameras, "
+                              f"with this geometry recipe and seed: stage 1 skipped)")
+        fit = fit_field(capture, rec, mode, dev, seed=opts.seed, progress=progress, geometry=reused)
         stats = fit.stats
+        if source is not None:
+            stats["seconds"]["geometry"] = reuse_seconds  # loading and checking it
         stats["seconds"] = {"check": check.seconds, **stats["seconds"]}
         run.save_field(fit.field)
         view = FieldRenderer(fit.field)
@@ -301,6 +361,7 @@ def expand(
             capture=str(Path(capture_dir).resolve()), labels=mode.value, annotated_frames=chosen, recipe=rec.to_dict(),
             device=str(dev), seed=opts.seed, seconds=stats["seconds"], geometry=stats["geometry"],
             semantic=stats["semantic"], report_seconds=report_seconds,
+            geometry_from=None if source is None else str(source.resolve()),
         ))
     return ExpandResult(
         out=out,

@@ -9,8 +9,9 @@ resume and table) goes through ``RunFolder``; no other module spells these file 
                                                     "grid.<name>": Tensor}}
 
 The JSON holds the format name and version, the labelsynth version, the class table, the scene
-normalisation, the recipe the field was fitted with and the non-tensor parts of the state
-(the occupancy grid's resolution). It is read with ``torch.load(weights_only=True)``, which
+normalisation, the recipe the field was fitted with, what its geometry was fitted on
+(``fitted_on``: ``geometry.fingerprint``; absent in files from before it) and the non-tensor
+parts of the state (the occupancy grid's resolution). It is read with ``torch.load(weights_only=True)``, which
 rebuilds tensors, strings and containers and refuses anything else, so a field.pt someone sent
 can never run code when opened. A file from before version 2 (a pickled dict of state dicts)
 holds only tensors and plain values too: it is read the same safe way and converted in memory.
@@ -37,6 +38,7 @@ from .capture.load import load_capture
 from .capture.model import Capture, SceneNormalization
 from .classes import ClassMap
 from .errors import LabelsynthError
+from .geometry.fingerprint import GeometryChanged, GeometryFingerprint
 from .geometry.sampling import OccupancyGrid
 from .geometry.sdf import SDFField
 from .outdir import PARTIAL_SUFFIX, atomic_file, partial_path, write_text_atomic
@@ -86,6 +88,9 @@ class RunInfo:
     """The semantic stage's statistics (``semantics.training.SemanticStats``)."""
     report_seconds: dict[str, float] | None = None
     """Seconds of the report's own steps (agreement, leave_one_out, pairwise, mesh, figures)."""
+    geometry_from: str | None = None
+    """The geometry file (field.pt, absolute) whose geometry this run reused instead of fitting
+    stage 1 (``expand --geometry``); None: fitted in this run."""
     version: str = __version__
     """The labelsynth version that wrote it."""
 
@@ -99,6 +104,8 @@ class RunInfo:
                 "seed": self.seed, "seconds": self.seconds, "geometry": self.geometry, "semantic": self.semantic}
         if self.report_seconds is not None:
             data["report_seconds"] = self.report_seconds
+        if self.geometry_from is not None:
+            data["geometry_from"] = self.geometry_from
         return data
 
     @classmethod
@@ -121,7 +128,10 @@ class RunInfo:
         seconds = data.get("seconds") or {}
         if not isinstance(seconds, dict) or not all(isinstance(v, (int, float)) for v in seconds.values()):
             raise RunFolderError(f"{bad} ('seconds' is not a mapping of numbers)")
-        kept = {k: data[k] for k in ("recipe", "device", "geometry", "semantic", "report_seconds", "version") if k in data}
+        if not isinstance(data.get("geometry_from", ""), str):
+            raise RunFolderError(f"{bad} ('geometry_from' is not a path)")
+        kept = {k: data[k] for k in ("recipe", "device", "geometry", "semantic", "report_seconds", "version",
+                                     "geometry_from") if k in data}
         for key in ("recipe", "geometry", "semantic"):
             if not isinstance(kept.get(key, {}), dict):
                 raise RunFolderError(f"{bad} ('{key}' is not a mapping)")
@@ -157,6 +167,8 @@ def save_field(fitted: FittedField, path: str | Path) -> Path:
         "state": plain,
         "has_head": fitted.head is not None,
     }
+    if fitted.fitted_on is not None:
+        meta["fitted_on"] = fitted.fitted_on.to_json()
     with atomic_file(path) as tmp:
         torch.save({_META_KEY: json.dumps(meta), "tensors": tensors}, tmp)
     return path
@@ -246,8 +258,12 @@ def _build_field(meta: dict, tensors: dict[str, torch.Tensor], path: Path, devic
             raise ValueError(f"occupancy grid resolution {resolution!r}")
     except (KeyError, TypeError, ValueError, AttributeError) as exc:
         raise RunFolderError(f"{path}: not a labelsynth field file (bad description: {_first_line(exc)})") from None
+    try:
+        fitted_on = GeometryFingerprint.from_json(meta["fitted_on"], str(path)) if "fitted_on" in meta else None
+    except GeometryChanged as exc:
+        raise RunFolderError(f"{exc}; {_RECREATE}") from None
     sdf = SDFField(recipe.geometry.sdf).to(device)
-    fitted = FittedField(sdf, OccupancyGrid(resolution, device), classes, normalization, recipe)
+    fitted = FittedField(sdf, OccupancyGrid(resolution, device), classes, normalization, recipe, fitted_on=fitted_on)
     head = fitted.new_head() if meta.get("has_head") else None
     try:
         sdf.load_state_dict(_part(tensors, "sdf"))

@@ -40,6 +40,19 @@ TINY_OVERRIDES = [
 ]
 
 
+@pytest.fixture
+def no_fitting(monkeypatch):
+    """Any fitting reached (either stage) fails the test loudly, not with exit code 2: for checks
+    that must come first."""
+    import labelsynth.pipeline as pipeline
+
+    def reached(*args, **kwargs):
+        raise AssertionError("fitting started")
+
+    monkeypatch.setattr(pipeline, "fit_geometry", reached)
+    monkeypatch.setattr(pipeline, "fit_semantics", reached)
+
+
 @dataclass
 class TinyRun:
     capture_dir: Path

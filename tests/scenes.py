@@ -59,14 +59,15 @@ def render(mesh: trimesh.Trimesh, cam: Camera, backdrop: float) -> tuple[np.ndar
 
 
 def make_object_capture(root: Path, frames: int = 12, size: int = 48, annotated=(0, 6),
-                        backdrop: float = 1.0) -> tuple[Path, Path]:
-    """Write ROOT/capture (transforms.json, images/, annotations/, classes.json) and ROOT/truth."""
+                        backdrop: float = 1.0, cameras: list[Camera] | None = None) -> tuple[Path, Path]:
+    """Write ROOT/capture (transforms.json, images/, annotations/, classes.json) and ROOT/truth;
+    ``cameras`` (square, ``size`` wide, focal 1.1 * size) replace the orbit's."""
     capture, truth = Path(root) / "capture", Path(root) / "truth"
     for sub in (capture / "images", capture / "annotations", truth):
         sub.mkdir(parents=True, exist_ok=True)
     mesh = object_mesh()
     entries = []
-    for i, cam in enumerate(orbit_cameras(frames, size)):
+    for i, cam in enumerate(cameras if cameras is not None else orbit_cameras(frames, size)):
         rgb, mask = render(mesh, cam, backdrop)
         name = f"view_{i:02d}"
         cv2.imwrite(str(capture / "images" / f"{name}.png"), cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR))

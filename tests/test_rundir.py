@@ -59,6 +59,10 @@ def test_run_json_round_trips_in_its_documented_layout(tmp_path):
     assert back == info and back.total_seconds == 3.0
     bare = RunInfo.from_json({"capture": "/c", "labels": "both"}, "x")  # what older runs may lack is defaulted
     assert bare.seed == 0 and bare.annotated_frames is None and bare.report_seconds is None
+    assert bare.geometry_from is None
+    reused = RunInfo(capture="/c", labels="both", geometry_from="/runs/a/field.pt")  # expand --geometry
+    run.write_run(reused)
+    assert json.loads(run.run_path.read_text())["geometry_from"] == "/runs/a/field.pt" and run.read_run() == reused
 
 
 @pytest.mark.parametrize("text, problem", [
@@ -69,6 +73,7 @@ def test_run_json_round_trips_in_its_documented_layout(tmp_path):
     ('{"capture": "/c", "labels": "both", "annotated_frames": "a"}', "'annotated_frames' is not a list"),
     ('{"capture": "/c", "labels": "both", "seconds": {"a": "x"}}', "'seconds' is not a mapping of numbers"),
     ('{"capture": "/c", "labels": "both", "recipe": 3}', "'recipe' is not a mapping"),
+    ('{"capture": "/c", "labels": "both", "geometry_from": 3}', "'geometry_from' is not a path"),
     ("{not json", "not a labelsynth run file (Expecting property name"),
 ])
 def test_a_foreign_or_broken_run_json_is_one_line(tmp_path, text, problem):

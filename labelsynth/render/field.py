@@ -2,7 +2,8 @@
 
 Geometry (the SDF and its occupancy grid, frozen once the semantic stage starts) plus the
 semantic head, with what gives them meaning: the class table, the scene normalisation (unit
-cube <-> world) and the recipe they were fitted with. ``renderer.FieldRenderer`` turns it into
+cube <-> world), the recipe they were fitted with and what the geometry was fitted on
+(``geometry.fingerprint``). ``renderer.FieldRenderer`` turns it into
 masks (with any head: the report renders each left-out frame with its own);
 ``rundir.save_field`` / ``load_field`` persist it as ``field.pt``.
 """
@@ -16,6 +17,7 @@ import torch
 
 from ..capture.model import SceneNormalization
 from ..classes import ClassMap
+from ..geometry.fingerprint import GeometryFingerprint
 from ..geometry.sampling import OccupancyGrid
 from ..geometry.sdf import SDFField
 from ..recipe import Recipe
@@ -26,7 +28,8 @@ from ..semantics.training import make_semantic_head
 @dataclass
 class FittedField:
     """One capture's fitted field; ``head`` is None until the semantic stage has run
-    (a geometry-only field)."""
+    (a geometry-only field). ``fitted_on``: what the geometry was fitted on (None for a
+    field.pt from before fingerprints), so that it is reused only on the same inputs."""
 
     sdf: SDFField
     grid: OccupancyGrid
@@ -34,6 +37,7 @@ class FittedField:
     normalization: SceneNormalization
     recipe: Recipe
     head: SemanticHead | None = None
+    fitted_on: GeometryFingerprint | None = None
 
     @property
     def device(self) -> torch.device:

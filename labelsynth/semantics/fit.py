@@ -73,6 +73,7 @@ def fit_head(
     if exclude and len(taught) == 0:
         raise LabelsynthError("no labelled pixels left after leaving out " + ", ".join(sorted(exclude)))
     cfg = scaled_config(cfg, steps_fraction)
+    torch.manual_seed(seed)  # the head's initial weights depend on the seed only, not on what ran before
     head = make_semantic_head(sdf, classes, cfg)
     stats = train_semantic(head, taught, classes, cfg, seed=seed, progress=progress)
     return HeadFit(head, stats, baked)

@@ -13,7 +13,7 @@ from ...errors import LabelsynthError
 
 BACKGROUND, GRANULATION, SLOUGH, NECROTIC, EPITHELIAL, UNKNOWN = 0, 1, 2, 3, 4, 5
 WOUND_CLASSES = (GRANULATION, SLOUGH, NECROTIC, EPITHELIAL, UNKNOWN)
-LAYOUTS = ("one-sided", "all-around")
+LAYOUTS = ("one-sided", "all-around", "all-around-uneven")
 
 
 @dataclass
@@ -32,8 +32,9 @@ class SynthConfig:
     """Strength of the imitation 2D segmenter's errors in predictions/ (0: the predictions are the truth)."""
     seed: int = 0
     """Everything random derives from it: the scene, the path, the lights and each frame's errors."""
-    layout: Literal["one-sided", "all-around"] = "one-sided"
-    """one-sided: a hand-held arc above a wound on a limb or torso; all-around: a wound wrapped
+    layout: Literal["one-sided", "all-around", "all-around-uneven"] = "one-sided"
+    """one-sided: a hand-held arc above a wound on a limb or torso; all-around-uneven: the all-around
+    turn, dwelling on one side of the limb (``paths.turn_progress``); all-around: a wound wrapped
     around a limb, filmed in one turn around it."""
 
     def __post_init__(self) -> None:

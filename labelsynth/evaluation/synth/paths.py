@@ -64,6 +64,27 @@ def hand_held_path(rng: np.random.Generator, scene: OneSidedScene, cfg: SynthCon
     return cams, info
 
 
+UNEVEN_DWELL = 0.75
+"""``all-around-uneven``: the share of the frames spent on the first third of the turn..."""
+UNEVEN_SHARE = 1 / 3
+"""...which is this share of the turn; the rest is passed in a quarter of the frames."""
+
+
+def turn_progress(t: np.ndarray, cfg: SynthConfig) -> np.ndarray:
+    """How far round the turn each frame is (0..1 at times ``t`` in [0, 1)): even for
+    ``all-around``; for ``all-around-uneven`` the camera dwells on one side of the limb (the first
+    ``UNEVEN_SHARE`` of the turn takes ``UNEVEN_DWELL`` of the frames) and passes the other side
+    quickly, the speed changing smoothly (a logistic step over about 5% of the video). No random
+    draw, so the scene and the wobbles are those of ``all-around`` with the same seed."""
+    if cfg.layout != "all-around-uneven":
+        return t
+    slow, fast = UNEVEN_SHARE / UNEVEN_DWELL, (1 - UNEVEN_SHARE) / (1 - UNEVEN_DWELL)
+    fine = np.linspace(0.0, 1.0, 4001)
+    speed = slow + (fast - slow) / (1 + np.exp(-(fine - UNEVEN_DWELL) / 0.012))
+    done = np.concatenate([[0.0], np.cumsum((speed[1:] + speed[:-1]) / 2)])
+    return np.interp(t, fine, done / done[-1])
+
+
 def orbit_path(rng: np.random.Generator, scene: AroundScene, cfg: SynthConfig) -> tuple[list[Camera], dict]:
     """An all-around path: one turn around the limb's axis (world x), always aimed at the axis
     near the wound, with smooth random wobbles in distance, position along the axis, tilt
@@ -80,7 +101,7 @@ def orbit_path(rng: np.random.Generator, scene: AroundScene, cfg: SynthConfig) -
     n = cfg.frames
     t = np.arange(n) / n
     turn = 2 * np.pi * (1 if rng.random() < 0.5 else -1)
-    theta = rng.uniform(-np.pi, np.pi) + turn * t + 0.08 * smooth_curve(rng, t, (1.7, 3.1))
+    theta = rng.uniform(-np.pi, np.pi) + turn * turn_progress(t, cfg) + 0.08 * smooth_curve(rng, t, (1.7, 3.1))
     dist = d0 * (1 + 0.12 * smooth_curve(rng, t, (0.9, 1.9)))
     along = 0.5 * R * smooth_curve(rng, t, (0.7, 1.6))  # aim point along the axis
     tilt = np.deg2rad(rng.uniform(5, 15)) * smooth_curve(rng, t, (0.8, 1.7))

@@ -1,0 +1,340 @@
+"""Which frames to annotate: `suggest`'s coverage choice against spread:K and against the worst of
+a few random K-subsets, by the Dice of the masks expanded from each choice.
+
+Cases (every frame carries its exact truth as an annotation, so any choice can teach):
+
+    wound-a, wound-b  one-sided synthetic wounds (`labelsynth synth`, seeds 11 and 12)
+    around            a wound wrapped around a limb, filmed in one even turn (seed 13)
+    uneven            the same scene and wobbles as `around` (seed 13), the turn dwelling on one side
+                      of the limb for 3/4 of the frames (layout all-around-uneven)
+    lego              the NeRF-synthetic lego (/work/shared/data/lego), every --lego-step-th view,
+                      resized to --lego-size
+
+Per case, `suggest --annotate max(K)` fits the geometry once (greedy: its first K frames are its
+choice for every smaller K). Then for each K and each choice (suggested, spread:K, --random subsets
+drawn with a fixed seed) `expand --geometry SUGGEST_OUT --annotated-frames CHOICE --labels
+annotations --no-report` (``pipeline.expand``, what the CLI calls), scored against the truth on the
+frames not chosen: wound bed Dice and the mean Dice of the tissue classes present (the lego:
+foreground Dice, its one class). "worst random" is the random subset of lowest wound-bed Dice.
+Targets (issue 27): suggested no worse than spread by more than 0.005 on any case and class group,
+and better by at least 0.02 on the uneven capture.
+
+`--timing`: the 50-frame 640x480 one-sided wound (seed 0), a full `expand --no-report` with the
+default recipe, then `expand --geometry` of that output: wall time of each, their stage seconds
+from run.json, and whether every mask is byte-identical (`--timing-only` writes
+bench_suggest_timing.json). `--timing-suggest`: also `suggest --annotate 4` on that wound.
+
+Everything is cached under --work (a finished suggest, expand or score is not redone):
+
+    nice -n 5 python benchmarks/bench_suggest.py --work /tmp/bench_suggest --recipe fast \\
+        --frames 30 --width 320 --height 240 --random 6
+    nice -n 5 python benchmarks/bench_suggest.py --work /tmp/bench_suggest --timing-only --timing-suggest
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import shutil
+import time
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+REPO = Path(__file__).resolve().parent.parent
+DEFAULT_LEGO = next((p for p in (REPO.parent / "shared" / "data" / "lego", REPO.parent.parent / "shared" / "data" / "lego")
+                     if p.is_dir()), REPO.parent / "shared" / "data" / "lego")  # /work/main or a worktree
+SYNTH_CASES = {"wound-a": ("one-sided", 11), "wound-b": ("one-sided", 12), "around": ("all-around", 13),
+               "uneven": ("all-around-uneven", 13)}
+
+
+def log(msg: str) -> None:
+    print(f"[{time.strftime('%H:%M:%S')}] {msg}", flush=True)
+
+
+# --- cases ------------------------------------------------------------------------------------
+def synth_case(folder: Path, layout: str, seed: int, frames: int, width: int, height: int) -> Path:
+    if not (folder / "capture" / "transforms.json").is_file():
+        from labelsynth.evaluation.synth import SynthConfig, synthesize
+
+        synthesize(folder, SynthConfig(frames=frames, annotated=frames, width=width, height=height, seed=seed,
+                                       layout=layout), force=True, progress=False)
+    return folder
+
+
+def lego_case(folder: Path, lego: Path, step: int, size: int) -> Path:
+    """Every ``step``-th lego view at ``size`` pixels, its truth as the annotation of every frame."""
+    if (folder / "capture" / "transforms.json").is_file():
+        return folder
+    tmp = folder.with_name(folder.name + ".partial")
+    shutil.rmtree(tmp, ignore_errors=True)
+    cap, truth = tmp / "capture", tmp / "truth"
+    for sub in (cap / "images", cap / "annotations", truth):
+        sub.mkdir(parents=True)
+    data = json.loads((lego / "capture" / "transforms.json").read_text())
+    scale = size / data["w"]
+    frames = sorted(data["frames"], key=lambda f: f["file_path"])[::step]
+    for f in frames:
+        name = Path(f["file_path"]).stem
+        img = cv2.imread(str(lego / "capture" / f["file_path"]), cv2.IMREAD_UNCHANGED)
+        cv2.imwrite(str(cap / "images" / f"{name}.png"), cv2.resize(img, (size, size), interpolation=cv2.INTER_AREA))
+        mask = cv2.imread(str(lego / "truth" / f"{name}.png"), cv2.IMREAD_UNCHANGED)
+        small = cv2.resize(mask, (size, size), interpolation=cv2.INTER_NEAREST)
+        cv2.imwrite(str(truth / f"{name}.png"), small)
+        cv2.imwrite(str(cap / "annotations" / f"{name}.png"), small)
+    out = {**data, "frames": frames, "w": size, "h": size}
+    for key in ("fl_x", "fl_y", "cx", "cy"):
+        out[key] = data[key] * scale
+    (cap / "transforms.json").write_text(json.dumps(out))
+    shutil.copy(lego / "capture" / "classes.json", cap / "classes.json")
+    shutil.rmtree(folder, ignore_errors=True)
+    os.replace(tmp, folder)
+    return folder
+
+
+# --- one case ---------------------------------------------------------------------------------
+def scores_of(out: Path, truth: Path, classes, chosen: list[str]) -> dict:
+    """Dice on the frames not chosen: wound bed and the mean of the tissue classes present."""
+    from labelsynth.pipeline import score_against_truth
+
+    rows = {r["class"]: r for r in score_against_truth(out, truth, classes, exclude=set(chosen)).table()}
+    tissues = [c.name for c in classes.classes if c.id != 0 and rows.get(c.name, {}).get("n")]
+    return {"wound_bed": rows["wound_bed"]["dice"],
+            "tissue_mean": float(np.mean([rows[t]["dice"] for t in tissues])) if tissues else None,
+            "classes": {t: rows[t]["dice"] for t in tissues}, "scored": len(list((out / "masks").glob("*.png"))) - len(chosen)}
+
+
+def run_choice(case: Path, suggest_out: Path, out: Path, chosen: list[str], args) -> dict:
+    """expand --geometry from ``chosen`` (cached), then its scores (cached in OUT/../NAME.score.json)."""
+    from labelsynth.capture import load_capture
+    from labelsynth.pipeline import expand
+    from labelsynth.rundir import RunFolder
+
+    score_file = out.with_name(out.name + ".score.json")
+    if score_file.is_file():
+        cached = json.loads(score_file.read_text())
+        if cached.get("chosen") == chosen:
+            return cached
+    if not RunFolder(out).is_finished() or RunFolder(out).read_run().annotated_frames != chosen:
+        t0 = time.time()
+        expand(case / "capture", out, labels="annotations", recipe=args.recipe, overrides=args.set, device=args.device,
+               annotated_frames=list(chosen), report=False, geometry=suggest_out, force=True, progress=False)
+        log(f"  expanded {out.relative_to(args.work)} from {', '.join(chosen)} in {time.time() - t0:.0f} s")
+    cap = load_capture(case / "capture")
+    result = {"chosen": chosen, **scores_of(out, case / "truth", cap.classes, chosen),
+              "seconds": RunFolder(out).read_run().seconds}
+    score_file.write_text(json.dumps(result, indent=1))
+    return result
+
+
+def run_case(name: str, case: Path, args) -> dict:
+    from labelsynth.capture import load_capture
+    from labelsynth.capture.select import select_frames
+    from labelsynth.options import SuggestOptions
+    from labelsynth.suggest import read_suggestion, suggest
+
+    work = args.work / name
+    suggest_out = work / "suggest"
+    kmax = max(args.ks)
+    if not (suggest_out / "suggest.json").is_file() or read_suggestion(suggest_out)["annotate"] < kmax:
+        t0 = time.time()
+        suggest(case / "capture", SuggestOptions(annotate=kmax, recipe=args.recipe, overrides=args.set,
+                                                 device=args.device), suggest_out, force=True, progress=False)
+        log(f"{name}: suggest fitted the geometry and ranked the frames in {time.time() - t0:.0f} s")
+    sug = read_suggestion(suggest_out)
+    names = load_capture(case / "capture").names
+    ranked = [f["name"] for f in sug["frames"]]  # greedy: its first K are its choice for K (a run per --ks shares it)
+    rows = {}
+    for k in args.ks:
+        rng = np.random.default_rng([args.seed, k])
+        choices = {"suggested": sorted(ranked[:k]), "spread": select_frames(f"spread:{k}", names)}
+        for r in range(args.random):
+            choices[f"random{r}"] = sorted(names[i] for i in rng.choice(len(names), k, replace=False))
+        if args.only:  # one process per choice: expand and score those only (a later run without --only tabulates)
+            for c in args.only:
+                run_choice(case, suggest_out, work / f"K{k}" / c, choices[c], args)
+            continue
+        res = {c: run_choice(case, suggest_out, work / f"K{k}" / c, chosen, args) for c, chosen in choices.items()}
+        randoms = [res[c] for c in res if c.startswith("random")]
+        worst = min(randoms, key=lambda r: r["wound_bed"]) if randoms else None
+        cov = {c: _coverage(suggest_out, chosen) for c, chosen in choices.items()}
+        rows[k] = {"suggested": res["suggested"], "spread": res["spread"], "worst_random": worst,
+                   "random_mean_wound_bed": float(np.mean([r["wound_bed"] for r in randoms])) if randoms else None,
+                   "coverage": {"suggested": cov["suggested"], "spread": cov["spread"],
+                                "worst_random": cov[next(c for c in res if res[c] is worst)] if worst else None}}
+        s, p = res["suggested"], res["spread"]
+        log(f"{name} K={k}: wound bed suggested {s['wound_bed']:.3f} spread {p['wound_bed']:.3f}"
+            + (f" worst random {worst['wound_bed']:.3f}" if worst else "")
+            + f"; tissue mean suggested {_f(s['tissue_mean'])} spread {_f(p['tissue_mean'])}")
+    return {"case": name, "frames": len(names), "ranked": ranked, "coverage": sug["coverage_by_k"],
+            "geometry_seconds": sug["seconds"].get("geometry"), "suggest_seconds": sug["seconds"], "by_k": rows}
+
+
+def _coverage(suggest_out: Path, chosen: list[str]) -> float:
+    """Coverage of a choice by the suggest run's own measure (recomputed from field.pt)."""
+    cache = suggest_out.parent / "coverage.json"
+    known = json.loads(cache.read_text()) if cache.is_file() else {}
+    key = ",".join(chosen)
+    if key not in known:
+        import torch
+
+        from labelsynth.capture import load_capture
+        from labelsynth.render.renderer import FieldRenderer
+        from labelsynth.rundir import load_field
+        from labelsynth.suggest import CoverageConfig, read_suggestion, surface_views
+
+        if _VIEWS.get(suggest_out) is None:
+            capture = load_capture(read_suggestion(suggest_out)["capture"])
+            view = FieldRenderer(load_field(suggest_out / "field.pt", torch.device("cpu")))
+            _VIEWS[suggest_out] = surface_views(view.mesh(), capture.unit_cameras(), capture.names, CoverageConfig(),
+                                                caster=view.caster(), progress=False)
+        views = _VIEWS[suggest_out]
+        known[key] = views.coverage([views.names.index(n) for n in chosen])
+        if cache.is_file():  # another run (other --ks) may have added to it meanwhile
+            known = {**json.loads(cache.read_text()), key: known[key]}
+        tmp = cache.with_name(f"{cache.name}.{os.getpid()}")
+        tmp.write_text(json.dumps(known, indent=1))
+        os.replace(tmp, cache)
+    return known[key]
+
+
+_VIEWS: dict = {}
+
+
+def _f(x) -> str:
+    return "-" if x is None else f"{x:.3f}"
+
+
+# --- timing -----------------------------------------------------------------------------------
+def timing(args) -> dict:
+    """Full expand --no-report vs expand --geometry of it, on the 50-frame 640x480 wound."""
+    from labelsynth.pipeline import expand
+    from labelsynth.rundir import RunFolder
+
+    folder = synth_case(args.work / "timing" / "wound50", "one-sided", 0, 50, 640, 480)
+    full, reused = args.work / "timing" / "full", args.work / "timing" / "reused"
+    walls = {}
+    for out, geometry in ((full, None), (reused, full)):
+        wall_file = out.with_name(out.name + ".wall.json")
+        if not (RunFolder(out).is_finished() and wall_file.is_file()):
+            load0 = os.getloadavg()[0]
+            t0 = time.time()
+            expand(folder / "capture", out, labels="annotations", recipe="default", device=args.device, report=False,
+                   geometry=geometry, force=True, progress=False)
+            wall_file.write_text(json.dumps({"wall_s": time.time() - t0, "load_before": load0,
+                                             "load_after": os.getloadavg()[0]}))
+        walls[out.name] = json.loads(wall_file.read_text())
+        log(f"timing: {out.name} {walls[out.name]['wall_s']:.0f} s (load average {walls[out.name]['load_before']:.1f}"
+            f" -> {walls[out.name]['load_after']:.1f}); stages {_stages(RunFolder(out).read_run().seconds)}")
+    a, b = RunFolder(full), RunFolder(reused)
+    names = sorted(p.stem for p in a.masks_dir.glob("*.png"))
+    same = all(a.mask_path(n).read_bytes() == b.mask_path(n).read_bytes() for n in names)
+    ratio = walls["reused"]["wall_s"] / walls["full"]["wall_s"]
+    log(f"timing: expand --geometry / full expand = {ratio:.2f} (target <= 0.5); masks identical: {same} ({len(names)})")
+    return {"walls": walls, "ratio": ratio, "masks_identical": same, "frames": len(names),
+            "stages": {"full": a.read_run().seconds, "reused": b.read_run().seconds},
+            "suggest": suggest_timing(folder, args) if args.timing_suggest else None}
+
+
+def suggest_timing(folder: Path, args) -> dict:
+    """``suggest --annotate 4`` on the 50-frame wound with the default recipe (the workflow's step 2)."""
+    from labelsynth.options import SuggestOptions
+    from labelsynth.suggest import read_suggestion, suggest
+
+    out = args.work / "timing" / "suggest"
+    wall_file = out.with_name(out.name + ".wall.json")
+    if not ((out / "suggest.json").is_file() and wall_file.is_file()):
+        load0 = os.getloadavg()[0]
+        t0 = time.time()
+        suggest(folder / "capture", SuggestOptions(annotate=4, recipe="default", device=args.device), out, force=True,
+                progress=False)
+        wall_file.write_text(json.dumps({"wall_s": time.time() - t0, "load_before": load0,
+                                         "load_after": os.getloadavg()[0]}))
+    wall = json.loads(wall_file.read_text())
+    sug = read_suggestion(out)
+    log(f"timing: suggest --annotate 4 {wall['wall_s']:.0f} s (load average {wall['load_before']:.1f} -> "
+        f"{wall['load_after']:.1f}); stages {_stages(sug['seconds'])}; frames {', '.join(f['name'] for f in sug['frames'])}"
+        f" cover {sug['coverage']:.3f}, spread:4 {sug['spread']['coverage']:.3f}")
+    return {"wall": wall, "seconds": sug["seconds"], "frames": [f["name"] for f in sug["frames"]],
+            "coverage": sug["coverage"], "spread_coverage": sug["spread"]["coverage"]}
+
+
+def _stages(seconds: dict) -> str:
+    return ", ".join(f"{k} {v:.1f}" for k, v in seconds.items())
+
+
+# --- report -----------------------------------------------------------------------------------
+def table(results: list[dict]) -> str:
+    lines = ["| case | K | coverage sugg / spread / worst rnd | wound bed sugg | spread | worst rnd | "
+             "tissue mean sugg | spread | worst rnd | sugg - spread (wb / tissue) |",
+             "|---|---|---|---|---|---|---|---|---|---|"]
+    for res in results:
+        for k, row in res["by_k"].items():
+            s, p, w = row["suggested"], row["spread"], row["worst_random"] or {}
+            cov = row["coverage"]
+            dwb = s["wound_bed"] - p["wound_bed"]
+            dt = (s["tissue_mean"] - p["tissue_mean"]) if s["tissue_mean"] is not None and p["tissue_mean"] is not None else None
+            lines.append(f"| {res['case']} | {k} | {cov['suggested']:.3f} / {cov['spread']:.3f} / {_f(cov['worst_random'])} | "
+                         f"{s['wound_bed']:.3f} | {p['wound_bed']:.3f} | {_f(w.get('wound_bed'))} | {_f(s['tissue_mean'])} | "
+                         f"{_f(p['tissue_mean'])} | {_f(w.get('tissue_mean'))} | {dwb:+.3f} / "
+                         f"{'-' if dt is None else f'{dt:+.3f}'} |")
+    return "\n".join(lines)
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--work", type=Path, required=True)
+    ap.add_argument("--cases", default="wound-a,wound-b,around,uneven,lego")
+    ap.add_argument("--ks", default="2,3,4")
+    ap.add_argument("--random", type=int, default=10, help="random K-subsets per K (the worst is reported)")
+    ap.add_argument("--frames", type=int, default=50)
+    ap.add_argument("--width", type=int, default=640)
+    ap.add_argument("--height", type=int, default=480)
+    ap.add_argument("--lego", type=Path, default=DEFAULT_LEGO)
+    ap.add_argument("--lego-step", type=int, default=2, help="every Nth lego view")
+    ap.add_argument("--lego-size", type=int, default=400)
+    ap.add_argument("--recipe", default="default")
+    ap.add_argument("--set", action="append", default=[])
+    ap.add_argument("--device", default="cpu")
+    ap.add_argument("--seed", type=int, default=0, help="seed of the random subsets")
+    ap.add_argument("--only", default="", help="comma list of choices (suggested, spread, random0, ...) to expand and "
+                    "score, without the table: runs in parallel fill the cache, a run without --only tabulates")
+    ap.add_argument("--timing", action="store_true", help="also the --geometry timing on the 50-frame wound")
+    ap.add_argument("--timing-only", action="store_true")
+    ap.add_argument("--json", default=None, help="the summary's file name under --work (default bench_suggest.json, "
+                    "bench_suggest_timing.json with --timing-only): several runs of disjoint --cases can share --work")
+    ap.add_argument("--timing-suggest", action="store_true", help="with the timing: also suggest --annotate 4 on that wound")
+    args = ap.parse_args()
+    args.ks = [int(k) for k in args.ks.split(",")]
+    args.only = [c for c in args.only.split(",") if c]
+    args.work.mkdir(parents=True, exist_ok=True)
+    summary: dict = {"settings": {k: (str(v) if isinstance(v, Path) else v) for k, v in vars(args).items()}}
+    report = args.work / (args.json or ("bench_suggest_timing.json" if args.timing_only else "bench_suggest.json"))
+    if not args.timing_only:
+        results = []
+        for name in [c for c in args.cases.split(",") if c]:
+            folder = args.work / "cases" / name
+            if name == "lego":
+                case = lego_case(folder, args.lego, args.lego_step, args.lego_size)
+            else:
+                layout, seed = SYNTH_CASES[name]
+                case = synth_case(folder, layout, seed, args.frames, args.width, args.height)
+            results.append(run_case(name, case, args))
+            if args.only:
+                continue
+            report.write_text(json.dumps({**summary, "cases": results}, indent=1, default=str))
+        summary["cases"] = results
+        if args.only:
+            print(f"expanded and scored {', '.join(args.only)} (no table: run again without --only)")
+            return
+        print(table(results))
+    if args.timing or args.timing_only:
+        summary["timing"] = timing(args)
+    report.write_text(json.dumps(summary, indent=1, default=str))
+    print(f"wrote {report}")
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,160 @@
+"""Which frames together show the most of the fitted surface: greedy coverage.
+
+Points are sampled uniformly by area on the fitted surface (the geometry stage's mesh). A frame
+sees a point when the point projects into the image, faces the camera and the first surface hit
+of the ray from the camera centre towards it is the point itself (cast with ``render.surface``).
+How well it sees it: the projected pixel density along the surface, ``f * cos(angle) / depth``
+(pixels per unit of surface length, foreshortening included). A point counts fully when a
+chosen frame sees it at least as well as ``reference_quantile`` of the points are seen by their
+best frame (close and square), proportionally less when seen from far or at a grazing angle, and
+once only: at the best view any chosen frame has of it. The score of a set of frames is the
+mean of that over the points some frame of the capture sees, divided by the same for all frames
+(1 = the chosen frames show everything the video shows as well as the video does). It is a
+facility-location function (monotone, submodular), so adding the frame of largest marginal gain,
+K times, is within 1 - 1/e of the best K-subset.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+import trimesh
+
+from ..cameras import Camera
+from ..errors import LabelsynthError
+from ..progress import track
+from ..render.surface import SurfaceCaster
+
+
+@dataclass
+class CoverageConfig:
+    """How the surface is sampled and how a frame's view of a point is weighed."""
+
+    samples: int = 20000
+    """Points sampled uniformly by area on the fitted surface."""
+    reference_quantile: float = 0.5
+    """A chosen frame's view of a point counts fully when its pixel density reaches this
+    quantile of every point's best view (0.5: the median point's best view)."""
+    occlusion_tolerance: float = 2e-3
+    """A ray's first hit within this fraction of the surface's bounding-box diagonal before the
+    point still counts as the point (the sample lies on a triangle; Embree casts in float32)."""
+    seed: int = 0
+    """Seed of the surface samples."""
+
+
+@dataclass
+class Pick:
+    """One chosen frame: its gain is the share of the surface's score it added when chosen."""
+
+    name: str
+    index: int
+    gain: float
+    coverage: float
+    """The chosen frames' coverage up to and including this one."""
+
+
+@dataclass
+class SurfaceViews:
+    """How well every frame sees every surface sample (``quality``, frames x samples, in [0, 1])."""
+
+    names: list[str]
+    points: np.ndarray
+    """(N, 3) samples in the unit cube."""
+    normals: np.ndarray
+    """(N, 3) outward unit normals."""
+    quality: np.ndarray
+    """(F, N) float32: 0 = unseen, 1 = seen close and square (see the module docstring)."""
+    reference: float
+    """Pixel density that counts fully (``CoverageConfig.reference_quantile``)."""
+    total: float = field(init=False)
+
+    def __post_init__(self) -> None:
+        self.total = float(self.quality.max(axis=0).sum()) if len(self.quality) else 0.0
+
+    @property
+    def seen(self) -> np.ndarray:
+        """(N,) samples some frame sees."""
+        return self.quality.max(axis=0) > 0
+
+    def coverage(self, indices: list[int]) -> float:
+        """The share of what all frames show that these frames show (0..1)."""
+        if not indices or self.total <= 0:
+            return 0.0
+        return float(self.quality[list(indices)].max(axis=0).sum() / self.total)
+
+    def greedy(self, k: int, *, first: list[int] | None = None) -> list[Pick]:
+        """``k`` frames, each the one that adds most to those before it (ties: the earlier frame).
+        ``first``: frames taken as already chosen (their picks are not returned)."""
+        if not 1 <= k <= len(self.names):
+            raise LabelsynthError(f"cannot choose {k} of {len(self.names)} frames")
+        chosen = list(first or [])
+        best = self.quality[chosen].max(axis=0) if chosen else np.zeros(self.quality.shape[1], np.float32)
+        picks: list[Pick] = []
+        for _ in range(k):
+            gains = np.maximum(self.quality, best[None]).sum(axis=1, dtype=np.float64) - best.sum(dtype=np.float64)
+            gains[chosen] = -np.inf
+            i = int(np.argmax(gains))
+            chosen.append(i)
+            best = np.maximum(best, self.quality[i])
+            total = self.total if self.total > 0 else 1.0
+            picks.append(Pick(self.names[i], i, float(max(gains[i], 0.0) / total), self.coverage(chosen)))
+        return picks
+
+    def curve(self, orders: list[list[int]]) -> list[float]:
+        """Coverage of each index list (e.g. spread:k for k = 1..6)."""
+        return [self.coverage(o) for o in orders]
+
+
+def sample_surface(mesh: trimesh.Trimesh, cfg: CoverageConfig) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(points (N,3), outward normals (N,3), face index (N,)) uniform by area."""
+    if len(mesh.faces) == 0:
+        raise LabelsynthError("the fitted surface is empty (the geometry stage found no surface in the scene box)")
+    points, faces = trimesh.sample.sample_surface(mesh, cfg.samples, seed=cfg.seed)
+    return np.asarray(points, dtype=np.float64), np.asarray(mesh.face_normals[faces], dtype=np.float64), faces
+
+
+def pixel_density(camera: Camera) -> float:
+    """Pixels per unit length at unit depth (the geometric mean of the focal lengths)."""
+    return float(np.sqrt(camera.fx * camera.fy))
+
+
+def view_density(points: np.ndarray, normals: np.ndarray, camera: Camera, caster: SurfaceCaster,
+                 tolerance: float) -> np.ndarray:
+    """(N,) projected pixel density ``f cos(angle) / depth`` of ``camera`` at each point, 0
+    where it does not see the point (outside the image, facing away, or hidden)."""
+    out = np.zeros(len(points))
+    if not len(points):
+        return out
+    pix, depth = camera.project(points)
+    inside = (depth > 0) & (pix[:, 0] >= 0) & (pix[:, 0] < camera.width) & (pix[:, 1] >= 0) & (pix[:, 1] < camera.height)
+    offset = points - camera.center
+    dist = np.linalg.norm(offset, axis=1)
+    dirs = offset / np.maximum(dist, 1e-12)[:, None]
+    cos = -np.einsum("nd,nd->n", dirs, normals)
+    idx = np.nonzero(inside & (cos > 0))[0]
+    if not len(idx):
+        return out
+    hit, hits, _ = caster.first_hits(np.broadcast_to(camera.center, (len(idx), 3)).copy(), dirs[idx])
+    reach = np.linalg.norm(hits - camera.center, axis=1)
+    visible = hit & (reach >= dist[idx] - tolerance)
+    keep = idx[visible]
+    out[keep] = pixel_density(camera) * cos[keep] / depth[keep]
+    return out
+
+
+def surface_views(mesh: trimesh.Trimesh, cameras: list[Camera], names: list[str], cfg: CoverageConfig | None = None,
+                  *, caster: SurfaceCaster | None = None, progress: bool = True) -> SurfaceViews:
+    """Every frame's view of every surface sample (``cameras`` in the mesh's coordinates)."""
+    cfg = cfg or CoverageConfig()
+    points, normals, _ = sample_surface(mesh, cfg)
+    caster = caster or SurfaceCaster(mesh)
+    tolerance = cfg.occlusion_tolerance * float(np.linalg.norm(np.ptp(points, axis=0)))
+    density = np.stack([view_density(points, normals, cam, caster, tolerance)
+                        for cam in track(cameras, "surface seen by each frame", enabled=progress)])
+    best = density.max(axis=0)
+    if not np.any(best > 0):
+        raise LabelsynthError("no frame sees the fitted surface (are the cameras and the surface in the same place?)")
+    reference = float(np.quantile(best[best > 0], cfg.reference_quantile))
+    quality = np.minimum(density / reference, 1.0).astype(np.float32)
+    return SurfaceViews(list(names), points, normals, quality, reference)
