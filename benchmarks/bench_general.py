@@ -63,7 +63,7 @@ def run_case(name: str, folder: Path, out: Path, recipe: str, overrides: list[st
 
     from labelsynth.capture import load_capture
     from labelsynth.capture.masks import read_mask
-    from labelsynth.evaluation.metrics import Counts, errors_far_from_edge
+    from labelsynth.metrics import Counts, errors_far_from_edge
     from labelsynth.pipeline import expand, score_against_truth
 
     capture, truth = folder / "capture", folder / "truth"

@@ -77,7 +77,7 @@ def truth_labels(root: Path, seed: int) -> Path:
     """OUT/truth/seed<S>/labels.h5: the capture's frames with their exact truth masks (confidence 1)."""
     from labelsynth.capture import load_capture
     from labelsynth.capture.masks import read_mask
-    from labelsynth.export.dataset import write_labels_h5
+    from labelsynth.export import write_labels_h5
 
     path = root / "truth" / f"seed{seed}" / "labels.h5"
     if not path.exists():
@@ -162,7 +162,7 @@ def run_arm(arm: str, root: Path, args) -> dict:
 
 
 def segment_and_score(arm: str, root: Path, seeds: list[int], classes, args, tag: str) -> tuple[dict, float, int]:
-    from labelsynth.evaluation.segment import segment_capture
+    from labelsynth.train.segment import segment_capture
 
     scores, seconds, frames = [], 0.0, 0
     for s in seeds:

@@ -1,9 +1,10 @@
 """Which captures a batch runs: every capture folder under a root, or the paths listed in a text file.
 
-A capture is a folder that ``load_capture`` can read poses from (``transforms.json``,
-``transforms_train.json``, ``cameras_sphere.npz`` or a COLMAP ``sparse/0``). Each gets a name
-that is unique in the batch and safe as a folder name: its output goes to
-``OUT/captures/<name>/`` and its frames carry that name in ``OUT/dataset.h5``.
+A capture is a folder that ``load_capture`` can read poses from (``capture.load.is_capture``:
+``transforms.json``, ``transforms_train.json``, ``cameras_sphere.npz`` or a COLMAP model in
+``sparse/0`` or ``sparse/``). Each gets a name that is unique in the batch and safe as a
+folder name: its output goes to ``OUT/captures/<name>/`` and its frames carry that name in
+``OUT/dataset.h5``.
 """
 
 from __future__ import annotations
@@ -13,10 +14,9 @@ import re
 from dataclasses import dataclass
 from pathlib import Path
 
-from ..capture.load import TRANSFORMS_NAMES
+from ..capture.load import POSE_SOURCES, is_capture
 from ..errors import LabelsynthError
 
-POSE_FILES = (*TRANSFORMS_NAMES, "cameras_sphere.npz")
 _UNSAFE = re.compile(r"[^A-Za-z0-9._-]+")
 
 
@@ -30,11 +30,6 @@ class CaptureJob:
 
     name: str
     path: Path
-
-
-def is_capture(folder: Path) -> bool:
-    """True when ``folder`` holds a pose source ``load_capture`` reads."""
-    return any((folder / f).is_file() for f in POSE_FILES) or (folder / "sparse" / "0").is_dir()
 
 
 def find_captures(root: Path, exclude: Path | None = None) -> list[Path]:
@@ -79,7 +74,7 @@ def read_capture_list(list_file: Path) -> list[Path]:
         if not path.is_dir():
             raise BatchError(f"{list_file}:{number}: {text}: no such capture folder")
         if not is_capture(path):
-            raise BatchError(f"{list_file}:{number}: {text}: not a capture (no {', '.join(POSE_FILES)} or sparse/0)")
+            raise BatchError(f"{list_file}:{number}: {text}: not a capture (no {POSE_SOURCES})")
         paths.append(path)
     return paths
 
@@ -123,7 +118,7 @@ def discover(source: str | Path, out: Path | None = None) -> list[CaptureJob]:
         what = f"{source}: lists no captures"
     elif source.is_dir():
         paths, root = find_captures(source, exclude=out), source
-        what = f"{source}: no capture folders found (a capture has {', '.join(POSE_FILES)} or sparse/0)"
+        what = f"{source}: no capture folders found (a capture has {POSE_SOURCES})"
     else:
         raise BatchError(f"{source}: no such folder or capture list")
     if not paths:

@@ -133,7 +133,7 @@ def _check_file(capture: Capture, task: _Task) -> tuple[str | None, np.ndarray |
     """(problem line or None, decoded mask or None, its file stamp or None) for one file, decoded
     by the run's own reader so the check finds what the run would; never raises for a bad file."""
     kind, path, size, role = task
-    if not path.is_file():
+    if not (path.is_file() if kind == "image" else _masks.mask_exists(path)):
         return f"{path}: {role} {'file' if kind == 'image' else 'mask'} missing", None, None
     stamp = file_stamp(path)
     try:

@@ -1,11 +1,13 @@
 """``load_capture``: a capture folder -> ``Capture`` (read-only; nothing is ever written there).
 
-Pose sources, first found wins: ``transforms.json``; ``transforms_train.json`` (the
+Pose sources, first found wins (``find_pose_source``, the one rule of what a capture folder
+is, which ``batch`` discovery uses too): ``transforms.json``; ``transforms_train.json`` (the
 NeRF-synthetic layout, which has no plain ``transforms.json``); ``cameras_sphere.npz`` (the
-NeuS / IDR layout of DTU and BlendedMVS, ``capture.neus``); a COLMAP model in ``sparse/0``.
-Without any, the error tells the user to run ``labelsynth poses CAPTURE``.
+NeuS / IDR layout of DTU and BlendedMVS, ``capture.neus``); a COLMAP model in ``sparse/0`` or
+directly in ``sparse/``. Without any, the error tells the user to run ``labelsynth poses CAPTURE``.
 
-Expert masks come from ``annotations/`` (by image stem) or, in a NeuS capture, from its
+Expert masks come from ``annotations/`` (by image stem; PNG masks, or a CVAT "Segmentation
+mask 1.1" zip or a COCO instances JSON read in place: ``capture.archives``) or, in a NeuS capture, from its
 ``mask/`` (exact object masks, paired by sorted order). A NeuS capture with an
 ``annotations/`` folder of masks learns from that folder alone: mask/ is ignored with a
 warning, since the user made annotations/ on purpose. ``annotated_frames``
@@ -18,10 +20,13 @@ from __future__ import annotations
 
 import json
 import warnings
+from dataclasses import dataclass
 from pathlib import Path
+from typing import Literal
 
 from ..classes import CLASSES_FILE, ClassMap
 from ..errors import CaptureError
+from .archives import ARCHIVE_SUFFIXES, archive_masks
 from .colmap import find_sparse_model, read_colmap
 from .images import image_size
 from .masks import BINARY_OBJECT_ID, MASK_EXTENSIONS, color_table_for, mask_size
@@ -32,6 +37,7 @@ from .select import FrameSpec, select_frames
 from .transforms import PosedFrames, read_transforms, white_background_of
 
 TRANSFORMS_NAMES = ("transforms.json", "transforms_train.json")
+POSE_SOURCES = "transforms.json, transforms_train.json, cameras_sphere.npz or a COLMAP model in sparse/0 or sparse/"
 MASK_FOLDERS = ("annotations", "predictions")
 LOSSY_EXTENSIONS = (".jpg", ".jpeg")
 
@@ -98,7 +104,7 @@ def _attach_masks(root: Path, posed: PosedFrames, classes: ClassMap, classes_jso
     """Point each frame at its annotation and prediction masks (in place). An annotations/
     folder overrides the layout's own masks, since two teaching sources would disagree; a mask
     without a frame is an error, as its name is likely a typo."""
-    found = {folder: _mask_files(root / folder) for folder in MASK_FOLDERS}
+    found = {folder: _mask_files(root / folder, classes) for folder in MASK_FOLDERS}
     if posed.mask_kinds and found["annotations"]:
         layout_masks = ", ".join(f"{p.name}/" for p in posed.mask_kinds)
         warnings.warn(f"{root / 'annotations'}: these annotations teach; the {layout_masks} masks are ignored",
@@ -129,15 +135,14 @@ def capture_white_background(path: str | Path) -> bool:
     before it has any (``segment``) see the same pixels as the field. Only the transforms
     file is read; other pose sources (NeuS, COLMAP), a capture without poses and a transforms
     file that cannot be read mean black."""
-    root = Path(path)
-    for name in TRANSFORMS_NAMES:
-        if (root / name).is_file():
-            try:
-                data = json.loads((root / name).read_text(encoding="utf-8"))
-            except (OSError, UnicodeDecodeError, json.JSONDecodeError):
-                return False  # load_capture reports a broken file; it is not this caller's to judge
-            return white_background_of(data) if isinstance(data, dict) else False
-    return False
+    source = find_pose_source(path)
+    if source is None or source.kind != "transforms":
+        return False
+    try:
+        data = json.loads(source.path.read_text(encoding="utf-8"))
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError):
+        return False  # load_capture reports a broken file; it is not this caller's to judge
+    return white_background_of(data) if isinstance(data, dict) else False
 
 
 def _keep_annotations(frames: list[Frame], spec: FrameSpec, root: Path) -> None:
@@ -173,20 +178,44 @@ def validate_capture(capture: Capture) -> None:
                 )
 
 
-def _read_poses(root: Path) -> PosedFrames:
+@dataclass(frozen=True)
+class PoseSource:
+    """Where a capture folder's camera poses are: the file (transforms, NeuS) or the COLMAP model folder."""
+
+    kind: Literal["transforms", "neus", "colmap"]
+    path: Path
+
+
+def find_pose_source(folder: str | Path) -> PoseSource | None:
+    """The pose source ``load_capture`` reads in ``folder`` (first found wins, see the module
+    docstring), or None: the one rule of what a capture folder is. Only names are looked at."""
+    root = Path(folder)
     for name in TRANSFORMS_NAMES:
         if (root / name).is_file():
-            return read_transforms(root / name)
+            return PoseSource("transforms", root / name)
     npz = find_neus(root)
     if npz is not None:
-        return read_neus(npz)
+        return PoseSource("neus", npz)
     model = find_sparse_model(root)
     if model is not None:
-        return read_colmap(model, root / "images")
-    raise CaptureError(
-        f"{root}: no camera poses (no transforms.json, cameras_sphere.npz or COLMAP sparse/0); "
-        f"run `labelsynth poses {root}` to estimate them"
-    )
+        return PoseSource("colmap", model)
+    return None
+
+
+def is_capture(folder: str | Path) -> bool:
+    """Whether ``folder`` holds a pose source ``load_capture`` reads."""
+    return find_pose_source(folder) is not None
+
+
+def _read_poses(root: Path) -> PosedFrames:
+    source = find_pose_source(root)
+    if source is None:
+        raise CaptureError(f"{root}: no camera poses (no {POSE_SOURCES}); run `labelsynth poses {root}` to estimate them")
+    if source.kind == "transforms":
+        return read_transforms(source.path)
+    if source.kind == "neus":
+        return read_neus(source.path)
+    return read_colmap(source.path, root / "images")
 
 
 def _check_unique_names(frames: list[Frame], root: Path) -> None:
@@ -200,8 +229,10 @@ def _check_unique_names(frames: list[Frame], root: Path) -> None:
         seen[f.name] = f.image_path
 
 
-def _mask_files(folder: Path) -> dict[str, Path]:
-    """stem -> mask path for the PNGs in ``folder`` (hidden files and non-images ignored)."""
+def _mask_files(folder: Path, classes: ClassMap) -> dict[str, Path]:
+    """stem -> mask path for the PNGs in ``folder`` (hidden files and other files ignored) and
+    for the masks inside a CVAT "Segmentation mask 1.1" zip or a COCO instances JSON there
+    (``capture.archives``: paths below that file)."""
     if not folder.is_dir():
         return {}
     found: dict[str, Path] = {}
@@ -210,9 +241,14 @@ def _mask_files(folder: Path) -> dict[str, Path]:
             continue
         if p.suffix.lower() in LOSSY_EXTENSIONS:
             raise CaptureError(f"{p}: masks must be PNG (JPEG compression changes class ids at edges)")
-        if p.suffix not in MASK_EXTENSIONS:
+        if p.suffix.lower() in ARCHIVE_SUFFIXES:
+            masks = archive_masks(p, classes)
+        elif p.suffix in MASK_EXTENSIONS:
+            masks = {p.stem: p}
+        else:
             continue
-        if p.stem in found:
-            raise CaptureError(f"{p}: two masks for frame '{p.stem}' ({found[p.stem].name} and {p.name})")
-        found[p.stem] = p
+        for stem, path in masks.items():
+            if stem in found:
+                raise CaptureError(f"{path}: two masks for frame '{stem}' ({found[stem]} and {path})")
+            found[stem] = path
     return found

@@ -57,22 +57,29 @@ def color_table_for(classes: ClassMap, labelmap: str | Path | None = None) -> Co
     return table
 
 
-def read_labelmap(path: str | Path, classes: ClassMap) -> ColorTable:
+IGNORE_LABEL_NAMES: tuple[str, ...] = ("ignored", "ignore", "void")  # labelmap names meaning 255 (VOC's void)
+
+
+def read_labelmap(path: str | Path, classes: ClassMap, *, strict: bool = False) -> ColorTable:
     """Parse CVAT's ``labelmap.txt`` (``name:r,g,b:parts:actions`` per line) into colour -> id.
 
-    Names are matched to class names case-insensitively (``background`` is id 0). Labels the
-    class map does not know are skipped with a warning: a mask that uses their colour then
-    fails with an "unknown colour" error, while unused labels do no harm.
+    Names are matched to class names case-insensitively (``background`` is id 0; ``ignored``,
+    ``ignore`` and ``void``, VOC's names for its void colour, are 255 unless a class has the
+    name). Labels the class map does not know are skipped with a warning (a mask that uses
+    their colour then fails with an "unknown colour" error, while unused labels do no harm),
+    or, with ``strict`` (a CVAT export read as annotations), a one-line error listing them.
     """
     path = Path(path)
     try:
         text = path.read_text(encoding="utf-8")
     except (OSError, UnicodeDecodeError) as exc:
         raise ClassMapError(f"{path}: cannot read labelmap ({exc})") from exc
-    by_name = {c.name.lower(): c.id for c in classes.classes}
-    by_name.setdefault("background", BACKGROUND_ID)
-    table: ColorTable = {}
-    unknown: list[str] = []
+    return labelmap_table(parse_labelmap(text, path), classes, path, strict=strict)
+
+
+def parse_labelmap(text: str, where: str | Path) -> list[tuple[str, tuple[int, int, int]]]:
+    """The (name, colour) entries of a CVAT / Pascal VOC ``labelmap.txt``; ``where`` names it in errors."""
+    entries: list[tuple[str, tuple[int, int, int]]] = []
     for lineno, line in enumerate(text.splitlines(), start=1):
         line = line.strip()
         if not line or line.startswith("#"):
@@ -84,26 +91,69 @@ def read_labelmap(path: str | Path, classes: ClassMap) -> ColorTable:
             if len(rgb) != 3 or not all(0 <= v <= 255 for v in rgb):
                 raise ValueError("colour must be r,g,b in 0..255")
         except (IndexError, ValueError) as exc:
-            raise ClassMapError(f"{path}: line {lineno} is not 'name:r,g,b:parts:actions' ({exc})") from exc
+            raise ClassMapError(f"{where}: line {lineno} is not 'name:r,g,b:parts:actions' ({exc})") from exc
+        entries.append((name, rgb))  # type: ignore[arg-type]
+    return entries
+
+
+def labelmap_table(
+    entries: list[tuple[str, tuple[int, int, int]]], classes: ClassMap, where: str | Path, *, strict: bool = False
+) -> ColorTable:
+    """Colour -> class id for labelmap entries, matched to ``classes`` by name (``read_labelmap``)."""
+    by_name = label_ids_by_name(classes)
+    table: ColorTable = {}
+    unknown: list[str] = []
+    for name, rgb in entries:
         class_id = by_name.get(name.lower())
         if class_id is None:
             unknown.append(name)
             continue
-        table[rgb] = class_id  # type: ignore[index]
+        table[rgb] = class_id
+    if unknown and strict:
+        raise ClassMapError(f"{where}: label(s) not in the class table: {', '.join(unknown)} "
+                            f"(classes: {', '.join(classes.names)})")
     if unknown:
         warnings.warn(
-            f"{path}: {len(unknown)} label(s) not in the class map, ignored: {', '.join(unknown)}",
-            stacklevel=2,
+            f"{where}: {len(unknown)} label(s) not in the class map, ignored: {', '.join(unknown)}",
+            stacklevel=3,
         )
     return table
 
 
+def label_ids_by_name(classes: ClassMap) -> dict[str, int]:
+    """Lower-cased label name -> class id, as annotation tools' files are matched to the class
+    table: the class names, ``background`` for id 0, VOC's names for void -> 255."""
+    by_name = {c.name.lower(): c.id for c in classes.classes}
+    by_name.setdefault("background", BACKGROUND_ID)
+    for name in IGNORE_LABEL_NAMES:
+        by_name.setdefault(name, IGNORE_ID)
+    return by_name
+
+
+def labelmap_text(entries: list[tuple[str, tuple[int, int, int]]]) -> str:
+    """A ``labelmap.txt`` as CVAT writes it: a header, then ``name:r,g,b::`` per label."""
+    lines = ["# label:color_rgb:parts:actions"]
+    lines += [f"{name}:{','.join(str(int(v)) for v in rgb)}::" for name, rgb in entries]
+    return "\n".join(lines) + "\n"
+
+
 # --- reading ------------------------------------------------------------------------------
 def mask_size(path: str | Path) -> tuple[int, int]:
-    """(width, height) from the PNG header, without decoding pixels."""
+    """(width, height) from the PNG header, without decoding pixels (for a mask inside an
+    annotation tool's export, from that file's index: ``capture.archives``)."""
+    from . import archives
     from .images import header_size
 
+    if archives.container_of(path) is not None:
+        return archives.member_size(path)
     return header_size(path, "mask")
+
+
+def mask_exists(path: str | Path) -> bool:
+    """Whether a mask file, or a mask inside an annotation tool's export, is there."""
+    from . import archives
+
+    return Path(path).is_file() or archives.member_exists(path)
 
 
 def read_mask(
@@ -121,6 +171,8 @@ def read_mask(
     """
     from PIL import Image
 
+    from . import archives
+
     path = Path(path)
     if kind not in MASK_KINDS:
         raise ValueError(f"mask kind must be one of {', '.join(MASK_KINDS)}, not {kind!r}")
@@ -128,33 +180,40 @@ def read_mask(
         raise CaptureError(f"{path}: a binary object mask needs class id {BINARY_OBJECT_ID} (object) in the class table")
     if color_table is None and kind == "classes":
         color_table = color_table_for(classes)
+    if archives.container_of(path) is not None:
+        return archives.read_member_mask(path, size, classes, color_table, kind)
     try:
         with Image.open(path) as im:
-            im.load()
-            mode = im.mode
-            if size is not None and tuple(im.size) != (int(size[0]), int(size[1])):
-                raise CaptureError(
-                    f"{path}: mask is {im.size[0]}x{im.size[1]} but its image is {int(size[0])}x{int(size[1])}"
-                )
-            if kind == "binary":
-                mask = _from_binary(im, path)
-            elif mode == "P":
-                indices = np.asarray(im, dtype=np.uint8)
-                palette = np.asarray(im.getpalette() or [], dtype=np.uint8).reshape(-1, 3)
-                mask = _from_palette(indices, palette, classes, color_table, path)
-            elif mode in ("RGB", "RGBA"):
-                mask = _from_color(np.asarray(im), classes, color_table, path)
-            elif mode == "LA":
-                mask = _from_ids(np.asarray(im)[:, :, 0], classes, path)
-            elif mode in ("L", "1", "I", "I;16", "I;16B", "I;16L"):
-                mask = _from_ids(np.asarray(im), classes, path)
-            else:
-                raise CaptureError(f"{path}: unsupported mask mode {mode!r}; use a single-channel PNG of class ids")
+            return decode_mask_image(im, path, size, classes, color_table, kind)
     except CaptureError:
         raise
     except (OSError, ValueError, SyntaxError) as exc:
         raise CaptureError(f"{path}: cannot read mask ({exc})") from exc
-    return mask
+
+
+def decode_mask_image(
+    im, path: Path, size: tuple[int, int] | None, classes: ClassMap, color_table: ColorTable | None, kind: str
+) -> np.ndarray:
+    """An opened PIL image -> (H,W) uint8 class ids (``read_mask``'s rules); ``path`` names it in errors."""
+    im.load()
+    mode = im.mode
+    if size is not None and tuple(im.size) != (int(size[0]), int(size[1])):
+        raise CaptureError(f"{path}: mask is {im.size[0]}x{im.size[1]} but its image is {int(size[0])}x{int(size[1])}")
+    if color_table is None:
+        color_table = color_table_for(classes)
+    if kind == "binary":
+        return _from_binary(im, path)
+    if mode == "P":
+        indices = np.asarray(im, dtype=np.uint8)
+        palette = np.asarray(im.getpalette() or [], dtype=np.uint8).reshape(-1, 3)
+        return _from_palette(indices, palette, classes, color_table, path)
+    if mode in ("RGB", "RGBA"):
+        return _from_color(np.asarray(im), classes, color_table, path)
+    if mode == "LA":
+        return _from_ids(np.asarray(im)[:, :, 0], classes, path)
+    if mode in ("L", "1", "I", "I;16", "I;16B", "I;16L"):
+        return _from_ids(np.asarray(im), classes, path)
+    raise CaptureError(f"{path}: unsupported mask mode {mode!r}; use a single-channel PNG of class ids")
 
 
 def _from_binary(im, path: Path) -> np.ndarray:
@@ -273,8 +332,6 @@ def write_mask(
     (``OUT/masks``, ``segment``, ``synth``) use it. Ids are not checked against ``classes``
     (callers that must, check first); the parent folder is created. Returns ``path``.
     """
-    from PIL import Image
-
     mask = as_id_mask(mask)
     if palette is None:
         palette = classes is not None
@@ -282,19 +339,32 @@ def write_mask(
         raise ValueError("a palette mask needs the class table for its colours")
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    mask = np.ascontiguousarray(mask)
-    if palette:
-        im = Image.frombytes("P", (mask.shape[1], mask.shape[0]), mask.tobytes())
-        im.putpalette(classes.palette())  # type: ignore[union-attr]
-        im.save(path, format="PNG")
-        return path
-    import cv2
-
-    ok, buf = cv2.imencode(".png", mask)
-    if not ok:  # pragma: no cover - cv2 always encodes uint8 2-D arrays
-        raise CaptureError(f"{path}: cannot encode mask")
+    data = encode_mask_png(mask, classes.palette() if palette else None)  # type: ignore[union-attr]
     try:
-        path.write_bytes(buf.tobytes())  # works for non-ASCII paths where cv2.imwrite may not
+        path.write_bytes(data)  # works for non-ASCII paths where cv2.imwrite may not
     except OSError as exc:
         raise CaptureError(f"{path}: cannot write mask ({exc.strerror or exc})") from exc
     return path
+
+
+def encode_mask_png(mask: np.ndarray, palette: list[int] | None = None) -> bytes:
+    """(H,W) ids -> PNG bytes: greyscale, or a palette PNG (indices = the ids) with ``palette``
+    (768 values, r,g,b per index) for the colours any viewer shows. ``write_mask`` and the
+    exports (``labelsynth.export.formats``) write masks through it."""
+    mask = np.ascontiguousarray(as_id_mask(mask))
+    if palette is not None:
+        import io
+
+        from PIL import Image
+
+        im = Image.frombytes("P", (mask.shape[1], mask.shape[0]), mask.tobytes())
+        im.putpalette(list(palette))
+        buf = io.BytesIO()
+        im.save(buf, format="PNG")
+        return buf.getvalue()
+    import cv2
+
+    ok, enc = cv2.imencode(".png", mask)
+    if not ok:  # pragma: no cover - cv2 always encodes uint8 2-D arrays
+        raise CaptureError("cannot encode a mask as PNG")
+    return enc.tobytes()

@@ -156,9 +156,18 @@ class Capture:
 
 
 def file_stamp(path: Path) -> tuple[int, int] | None:
-    """(mtime_ns, size) of a file, to notice one that changed after it was cached."""
+    """(mtime_ns, size) of a file, to notice one that changed after it was cached; for a mask
+    inside an annotation export (``capture.archives``), the export file's."""
     try:
         st = os.stat(path)
     except OSError:
-        return None
+        from .archives import container_of
+
+        where = container_of(path)
+        if where is None:
+            return None
+        try:
+            st = os.stat(where[0])
+        except OSError:
+            return None
     return st.st_mtime_ns, st.st_size

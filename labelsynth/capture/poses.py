@@ -14,6 +14,7 @@ import tempfile
 import time
 import warnings
 from collections.abc import Callable
+from contextlib import nullcontext
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -22,7 +23,7 @@ import numpy as np
 from ..cameras import w2c_cv_to_c2w_gl
 from ..errors import LabelsynthError
 from ..outdir import write_text_atomic
-from ..progress import console
+from ..progress import console, make_progress
 from .images import list_images
 
 EXHAUSTIVE_BELOW = 40  # frames; above this, sequential matching
@@ -137,19 +138,23 @@ def estimate_poses(
     log_level = pycolmap.logging.minloglevel
     pycolmap.logging.minloglevel = 2  # keep COLMAP's per-image chatter off the terminal
     try:
-        return _run_sfm(pycolmap, capture, images_dir, names, target, out, mode, camera_model, say, start)
+        return _run_sfm(pycolmap, capture, images_dir, names, target, out, mode, camera_model, say, start, progress)
     finally:
         pycolmap.logging.minloglevel = log_level
 
 
 def _run_sfm(pycolmap, capture: Path, images_dir: Path, names: list[str], target: Path, out: Path | None,
-             mode: str, camera_model: str, say: Callable[[str], None], start: float) -> PoseReport:
+             mode: str, camera_model: str, say: Callable[[str], None], start: float,
+             progress: bool = True) -> PoseReport:
     """COLMAP's steps in a temporary folder (features, matches, mapping), then the one file kept."""
     with tempfile.TemporaryDirectory(prefix="labelsynth-poses-") as tmp:
         db = Path(tmp) / "database.db"
-        _extract_features(pycolmap, db, images_dir, names, camera_model, say)
-        _match_features(pycolmap, db, mode, say)
-        rec = _largest_reconstruction(pycolmap, db, images_dir, Path(tmp) / "sparse", capture, say)
+        with _spinner(progress, f"SfM: SIFT features of {len(names)} images"):
+            _extract_features(pycolmap, db, images_dir, names, camera_model, say)
+        with _spinner(progress, f"SfM: {mode} matching"):
+            _match_features(pycolmap, db, mode, say)
+        rec = _largest_reconstruction(pycolmap, db, images_dir, Path(tmp) / "sparse", capture, say,
+                                      len(names), progress)
         camera = _shared_camera(rec, capture)
         registered, unregistered, data = _transforms(pycolmap, rec, camera, names, mode)
         _write_transforms(rec, data, target, out)
@@ -195,20 +200,32 @@ def _match_features(pycolmap, db: Path, mode: str, say: Callable[[str], None]) -
 
 
 def _largest_reconstruction(pycolmap, db: Path, images_dir: Path, sparse: Path, capture: Path,
-                            say: Callable[[str], None]):
+                            say: Callable[[str], None], total: int = 0, progress: bool = False):
     """Incremental mapping (seeded, so reruns agree); the model with the most frames is kept,
-    and one with fewer than two frames is an error, since it gives no usable poses."""
+    and one with fewer than two frames is an error, since it gives no usable poses. A bar
+    counts the images COLMAP registers (a second model, if one is started, counts on)."""
     say("incremental mapping")
     opts = pycolmap.IncrementalPipelineOptions()
     opts.random_seed = 0
     sparse.mkdir()
-    recs = pycolmap.incremental_mapping(db, images_dir, sparse, options=opts)
+    with make_progress(progress) as bar:
+        task = bar.add_task("SfM: mapping", total=total or None, status="")
+        recs = pycolmap.incremental_mapping(
+            db, images_dir, sparse, options=opts,
+            initial_image_pair_callback=lambda: bar.advance(task, 2),
+            next_image_callback=lambda: bar.advance(task, 1),
+        )
     if not recs:
         raise LabelsynthError(f"{capture}: reconstruction failed (no two images could be registered)")
     rec = max(recs.values(), key=lambda r: r.num_reg_images())
     if rec.num_reg_images() < 2:
         raise LabelsynthError(f"{capture}: reconstruction failed (fewer than 2 images registered)")
     return rec
+
+
+def _spinner(enabled: bool, text: str):
+    """A spinner for a COLMAP step that reports no progress of its own."""
+    return console.status(text) if enabled else nullcontext()
 
 
 def _shared_camera(rec, capture: Path):

@@ -1,7 +1,7 @@
 """Evaluation and baselines, not the product path: synthetic captures with exact truth
-(``synth``), scores (``metrics``), annotation perturbations (``perturb``), the 2D ONNX
-segmenter (``segment``), the 3D/2D vote baseline (``fusion``) and the benchmark that runs
-them against the field (``bench``).
+(``synth``), scores (``metrics``), annotation perturbations (``perturb``), the 3D/2D vote
+baseline (``fusion``) and the benchmark that runs them against the field (``bench``). The 2D
+ONNX segmenter (``segment``) is product: ``labelsynth.train.segment``.
 
 ``bench`` orchestrates whole runs through ``labelsynth.pipeline``, so it is loaded only when
 one of its names is asked for: importing this package never imports the orchestration.
@@ -10,7 +10,6 @@ one of its names is asked for: importing this package never imports the orchestr
 from .fusion import FusedLabels, fuse_labels, fusion_baseline, render_labels, view_votes
 from .metrics import METRICS, WOUND_BED, Counts, Scores, confusion_matrix, frame_counts, score_frames
 from .perturb import PERTURBATIONS, apply_perturbation
-from .segment import OnnxSegmenter, SegmentError, SegmentReport, segment_capture
 from .synth import SynthConfig, SynthResult, synthesize
 
 _BENCH = ("bench_markdown", "bench_plot", "run_bench")
@@ -30,10 +29,7 @@ __all__ = [
     "WOUND_BED",
     "Counts",
     "FusedLabels",
-    "OnnxSegmenter",
     "Scores",
-    "SegmentError",
-    "SegmentReport",
     "SynthConfig",
     "SynthResult",
     "apply_perturbation",
@@ -46,7 +42,6 @@ __all__ = [
     "render_labels",
     "run_bench",
     "score_frames",
-    "segment_capture",
     "synthesize",
     "view_votes",
 ]

@@ -23,7 +23,7 @@ from ..capture.masks import write_mask
 from ..capture.model import SceneNormalization
 from ..classes import ClassMap
 from ..export import LabelsWriter, write_masks_png
-from ..export.dataset import _RESERVED_ATTRS
+from ..export.labels_h5 import RESERVED_ATTRS, LabelsReader
 
 AUGMENT_H5 = "augment.h5"
 SUMMARY_JSON = "augment.json"
@@ -57,15 +57,15 @@ class AugmentWriter:
         self.classes = classes
         self.normalization = normalization
         self.real_cameras = real_cameras
-        with h5py.File(self.labels_h5, "r") as f:
-            self.real_names = [str(s) for s in f["frame_names"].asstr()[()]]
-            src = {k: (v.decode() if isinstance(v, bytes) else v) for k, v in f.attrs.items()}
+        self.real = LabelsReader(self.labels_h5)  # checked now, its frames copied by ``finish``
+        self.real_names = self.real.frame_names
+        src = self.real.attrs
         missing = [n for n in self.real_names if n not in real_cameras]
         if missing:
-            from .source import AugmentError
+            from . import AugmentError
 
             raise AugmentError(f"{self.labels_h5}: frames {missing[:3]} are not in the capture (a different capture?)")
-        extra = {k: v for k, v in src.items() if k not in _RESERVED_ATTRS}
+        extra = {k: v for k, v in src.items() if k not in RESERVED_ATTRS}
         extra.update(attrs)
         self.path = self.folder / AUGMENT_H5
         self.writer = LabelsWriter(self.path, n_frames=n_views + len(self.real_names), classes=classes,
@@ -78,7 +78,7 @@ class AugmentWriter:
     def add_view(self, name: str, view, camera_unit: Camera) -> None:
         """One novel view: images/, masks/ (class ids, 255 = not seen), valid/ (0/255) and augment.h5."""
         if name in self.real_cameras:
-            from .source import AugmentError
+            from . import AugmentError
 
             raise AugmentError(f"novel view name {name!r} is also a real frame's name")
         write_image(self.folder / "images" / f"{name}.png", view.image)
@@ -94,11 +94,10 @@ class AugmentWriter:
 
     def finish(self, summary: dict[str, Any]) -> Path:
         """Copy the real frames, close augment.h5, add the extra datasets, write augment.json."""
-        with h5py.File(self.labels_h5, "r") as f:
+        with self.real:
             for i, name in enumerate(self.real_names):
-                mask = f["masks"][i]
-                self.writer.add(name, f["images"][i], mask, f["confidence"][i].astype(np.float32),
-                                bool(f["annotated"][i]))
+                image, mask, confidence = self.real.read(i)
+                self.writer.add(name, image, mask, confidence.astype(np.float32), bool(self.real.annotated[i]))
                 self._record(name, self.real_cameras[name], np.ones(mask.shape, bool))
         self.writer.close()
         n = len(self.names)
@@ -114,4 +113,5 @@ class AugmentWriter:
         return self.path
 
     def abort(self) -> None:
+        self.real.close()
         self.writer.abort()

@@ -60,10 +60,12 @@ class SurfaceCaster:
     recomputed the barycentric coordinates from that point: together more time than Embree's
     own cast (README, Novel views: timing). Embree returns the triangle and the barycentric
     coordinates of the hit; the point is formed from them on the triangle in float64. As in
-    trimesh, the mesh is shifted and scaled to a box about 100 wide for float32 precision.
+    trimesh, the mesh is shifted and scaled to a box about 100 wide for float32 precision
+    (``rescale=False``: only shifted, for a caller whose meshes are already a few units wide and
+    whose output depends on the exact float32 rays: ``evaluation.synth``'s byte-identical captures).
     """
 
-    def __init__(self, mesh: trimesh.Trimesh) -> None:
+    def __init__(self, mesh: trimesh.Trimesh, *, rescale: bool = True) -> None:
         self.mesh = mesh
         self.empty = len(mesh.faces) == 0
         self._scene = None
@@ -79,7 +81,7 @@ class SurfaceCaster:
             self.intersector = trimesh.ray.ray_triangle.RayMeshIntersector(mesh)
             return
         self._origin = self._vertices.min(axis=0)
-        self._scale = 100.0 / max(float(np.linalg.norm(np.ptp(self._vertices, axis=0))), 1e-12)
+        self._scale = 100.0 / max(float(np.linalg.norm(np.ptp(self._vertices, axis=0))), 1e-12) if rescale else 1.0
         self._scene = rtcore_scene.EmbreeScene()
         TriangleMesh(scene=self._scene, vertices=((self._vertices - self._origin) * self._scale).astype(np.float32),
                      indices=self._faces.astype(np.int32))

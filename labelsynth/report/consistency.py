@@ -14,7 +14,7 @@ Why three measures:
 
 from __future__ import annotations
 
-from collections.abc import Callable, Sequence
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 
 import cv2
@@ -24,8 +24,10 @@ from ..cameras import Camera
 from ..capture.model import Capture
 from ..classes import IGNORE_ID, ClassMap
 from ..classes import WOUND_BED
-from ..evaluation.metrics import frame_counts
+from ..metrics import Counts, frame_counts
 from ..progress import track
+from ..render.renderer import FieldRenderer
+from ..semantics.head import SemanticHead
 
 # Cross-view consistency
 PAIR_MAX_SIDE = 160  # frames are cast at most this many pixels on their long side
@@ -97,10 +99,10 @@ def surface_labels(caster, camera_unit: Camera, mask: np.ndarray, max_side: int 
                          label_img, points[keep], small[keep].astype(np.uint8))
 
 
-def _pair_counts(a: SurfaceLabels, b: SurfaceLabels, wound_ids: np.ndarray) -> tuple[int, int, int, int]:
-    """(tp, fp, fn, shared) of the wound bed: a's labelled points seen by b, a's labels as truth."""
+def _pair_counts(a: SurfaceLabels, b: SurfaceLabels, wound_ids: np.ndarray) -> tuple[Counts, int]:
+    """(wound-bed counts, shared points): a's labelled points seen by b, a's labels as truth."""
     if len(a.points) == 0:
-        return 0, 0, 0, 0
+        return Counts(), 0
     cam = b.camera
     uv, depth = cam.project(a.points)
     u = np.floor(uv[:, 0]).astype(np.int64)
@@ -112,12 +114,12 @@ def _pair_counts(a: SurfaceLabels, b: SurfaceLabels, wound_ids: np.ndarray) -> t
     visible = b.hit[v, u] & (np.abs(b.depth[v, u] - d) < tol)
     idx, u, v = idx[visible], u[visible], v[visible]
     if len(idx) == 0:
-        return 0, 0, 0, 0
+        return Counts(), 0
     lb = b.label_img[v, u]
     ok = lb != IGNORE_ID
     la, lb = a.labels[idx[ok]], lb[ok]
     wa, wb = np.isin(la, wound_ids), np.isin(lb, wound_ids)
-    return int((wa & wb).sum()), int((~wa & wb).sum()), int((wa & ~wb).sum()), int(ok.sum())
+    return Counts(tp=int((wa & wb).sum()), fp=int((~wa & wb).sum()), fn=int((wa & ~wb).sum())), int(ok.sum())
 
 
 def pairwise_consistency(
@@ -140,13 +142,11 @@ def pairwise_consistency(
     mat: list[list[float | None]] = [[1.0 if i == j else None for j in range(n)] for i in range(n)]
     for i in range(n):
         for j in range(i + 1, n):
-            tp1, fp1, fn1, s1 = _pair_counts(surf[i], surf[j], wound_ids)
-            tp2, fp2, fn2, s2 = _pair_counts(surf[j], surf[i], wound_ids)
-            if s1 + s2 < MIN_SHARED_POINTS:
+            counts_ij, shared_ij = _pair_counts(surf[i], surf[j], wound_ids)
+            counts_ji, shared_ji = _pair_counts(surf[j], surf[i], wound_ids)
+            if shared_ij + shared_ji < MIN_SHARED_POINTS:
                 continue
-            tp, fpfn = tp1 + tp2, fp1 + fn1 + fp2 + fn2
-            dice = 1.0 if tp + fpfn == 0 else 2 * tp / (2 * tp + fpfn)
-            mat[i][j] = mat[j][i] = float(dice)
+            mat[i][j] = mat[j][i] = (counts_ij + counts_ji).dice
     return mat
 
 
@@ -154,31 +154,18 @@ def pairwise_consistency(
 # leave-one-view-out
 # ------------------------------------------------------------------------------------------
 def leave_one_out(
-    sem,
+    view: FieldRenderer,
     capture: Capture,
-    names: Sequence[str],
-    refit: Callable[[str], None],
+    heads: Mapping[str, SemanticHead],
     *,
     progress: bool = True,
 ) -> dict[str, np.ndarray]:
-    """The field's mask of each named frame after ``refit(name)`` retrained it without that frame.
-
-    ``refit`` replaces ``sem.head``; the full head is restored afterwards, whatever happens.
-    """
+    """The mask of each frame named in ``heads`` rendered by its own head, one trained
+    without that frame."""
     cams = capture.unit_cameras()
     index = {n: i for i, n in enumerate(capture.names)}
-    full_head = sem.head
-    out: dict[str, np.ndarray] = {}
-    try:
-        prepare = getattr(refit, "prepare", None)
-        if prepare is not None and names:  # heads trained together (pipeline.LeaveOneOutRefit)
-            prepare(list(names), progress=progress)
-        for name in track(list(names), "leave-one-view-out", enabled=progress):
-            refit(name)
-            out[name] = sem.render(cams[index[name]]).mask
-    finally:
-        sem.head = full_head
-    return out
+    return {name: view.render(cams[index[name]], head).mask
+            for name, head in track(list(heads.items()), "leave-one-view-out", enabled=progress)}
 
 
 # ------------------------------------------------------------------------------------------

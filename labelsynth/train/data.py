@@ -1,60 +1,35 @@
 """Sources -> frames: labels.h5 files written by ``expand`` and capture folders (their
 ``annotations/`` only), one class table for all, and the validation split by capture.
 
-A labels.h5 is streamed: its format, datasets and class table are checked up front, then each
-frame is read from the file when a batch needs it (h5py reads one chunk, i.e. one frame; every
-process opens its own handle, so DataLoader workers are safe), so memory does not grow with the
-number of frames. A capture's annotations are few by nature and are read once, into memory.
-``train`` never writes into a source.
+A labels.h5 (also augment.h5 and a batch's merged dataset.h5) is streamed through
+``export.labels_h5.LabelsReader``: its format, datasets, class table and (merged) capture files
+are checked up front, then each frame is read from the file when a batch needs it, cropped to
+its own size (h5py reads one chunk, i.e. one frame; every process opens its own handle, so
+DataLoader workers are safe), so memory does not grow with the number of frames. A capture's
+annotations are few by nature and are read once, into memory. Frames are resized and normalised
+as ``contract`` says, the same way ``segment`` prepares them. ``train`` never writes into a source.
 """
 
 from __future__ import annotations
 
 import json
-import os
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
 import cv2
-import h5py
 import numpy as np
 import torch
 
 from ..classes import IGNORE_ID, ClassMap, parse_id_pairs
 from ..errors import LabelsynthError
+from .contract import normalize, resize_image
 
-LABELS_DATASETS = ("images", "masks", "confidence", "annotated", "frame_names")
 HOLDOUT_FRACTION = 0.2  # of each source's frames, a contiguous block, when no source is held out
 
 
 class TrainError(LabelsynthError, ValueError):
     """A source, option or checkpoint that ``train`` cannot use (one line, names the file)."""
-
-
-class _H5Frames:
-    """Frame ``i`` of a labels.h5, read on demand through one handle per process."""
-
-    def __init__(self, path: Path) -> None:
-        self.path = path
-        self._file: h5py.File | None = None
-        self._pid: int | None = None
-
-    def __getstate__(self) -> dict[str, Any]:  # DataLoader workers open their own handle
-        return {"path": self.path, "_file": None, "_pid": None}
-
-    def __call__(self, i: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        if self._file is None or self._pid != os.getpid():
-            try:
-                self._file = h5py.File(self.path, "r")
-            except OSError as exc:
-                raise TrainError(f"{self.path}: no longer readable ({exc})") from None
-            self._pid = os.getpid()
-        f = self._file
-        try:
-            return f["images"][i], f["masks"][i], f["confidence"][i]
-        except (OSError, KeyError, ValueError) as exc:
-            raise TrainError(f"{self.path}: frame {i} cannot be read ({str(exc).splitlines()[0]})") from None
 
 
 class _InMemory:
@@ -96,13 +71,12 @@ class Source:
 
 def resize_frame(image: np.ndarray, mask: np.ndarray, confidence: np.ndarray,
                  size: tuple[int, int] | None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """To ``size`` (W, H): the image by area averaging (as a camera at that resolution would see
-    it), the mask and its confidence by nearest neighbour (class ids are never blended)."""
+    """To ``size`` (W, H): the image by ``contract.resize_image`` (what ``segment`` does), the mask
+    and its confidence by nearest neighbour (class ids are never blended)."""
     if size is None or (image.shape[1], image.shape[0]) == tuple(size):
         return image, mask, confidence
     w, h = size
-    up = w > image.shape[1]
-    image = cv2.resize(image, (w, h), interpolation=cv2.INTER_LINEAR if up else cv2.INTER_AREA)
+    image = resize_image(image, size)
     mask = cv2.resize(mask, (w, h), interpolation=cv2.INTER_NEAREST)
     confidence = cv2.resize(confidence.astype(np.float32), (w, h), interpolation=cv2.INTER_NEAREST)
     return image, mask, confidence
@@ -136,47 +110,22 @@ class Split:
 
 
 # --- reading sources -----------------------------------------------------------------------
-def _str(v: Any) -> str:
-    return v.decode("utf-8") if isinstance(v, bytes) else str(v)
-
-
 def load_labels_h5(path: Path, only_annotated: bool = False) -> Source:
-    """A labels.h5 written by ``expand``: its format, version, datasets and class table are
-    checked now; the frames are read when they are used."""
-    from ..export.dataset import FORMAT, FORMAT_VERSION, classes_from_attrs
+    """A labels.h5 written by ``expand`` (or ``augment``, or ``batch``'s merged dataset.h5),
+    checked now by ``export.labels_h5.LabelsReader``; its frames are read when they are used,
+    each cropped to its own size."""
+    from ..export.labels_h5 import LabelsReader
 
     try:
-        f = h5py.File(path, "r")
-    except OSError as exc:
-        raise TrainError(f"{path}: not a readable HDF5 file ({exc})") from None
-    with f:
-        fmt = _str(f.attrs.get("format", ""))
-        if fmt != FORMAT:
-            raise TrainError(f"{path}: not a labelsynth labels.h5 (format {fmt!r}, expected {FORMAT!r})")
-        version = int(f.attrs.get("format_version", -1))
-        if version != FORMAT_VERSION:
-            raise TrainError(f"{path}: labels.h5 format version {version}; this labelsynth reads version {FORMAT_VERSION}")
-        missing = [d for d in LABELS_DATASETS if d not in f]
-        if missing:
-            raise TrainError(f"{path}: labels.h5 lacks the datasets {missing}")
-        try:
-            classes = classes_from_attrs(f.attrs)
-        except (LabelsynthError, KeyError, ValueError) as exc:
-            raise TrainError(f"{path}: unusable class table ({str(exc).splitlines()[0]})") from None
-        n = len(f["annotated"])
-        shapes = {d: f[d].shape for d in ("images", "masks", "confidence")}
-        if (len(shapes["images"]) != 4 or shapes["images"][3] != 3 or shapes["masks"] != shapes["images"][:3]
-                or shapes["confidence"] != shapes["images"][:3] or shapes["images"][0] != n or len(f["frame_names"]) != n):
-            raise TrainError(f"{path}: labels.h5 datasets do not fit together "
-                             f"({', '.join(f'{k} {v}' for k, v in shapes.items())}, {n} frames)")
-        annotated = f["annotated"][()].astype(bool)
-        keep = np.flatnonzero(annotated) if only_annotated else np.arange(n)
-        if keep.size == 0:
-            raise TrainError(f"{path}: no annotated frames" + (" (--only-annotated)" if only_annotated else ""))
-        names = [str(s) for s in f["frame_names"].asstr()[()]]
-        size = (int(shapes["images"][2]), int(shapes["images"][1]))
-    return Source(path, "labels", classes, [names[i] for i in keep], annotated[keep], [size] * len(keep),
-                  [int(i) for i in keep], _H5Frames(path))
+        reader = LabelsReader(path)
+    except LabelsynthError as exc:
+        raise TrainError(str(exc)) from None
+    keep = np.flatnonzero(reader.annotated) if only_annotated else np.arange(len(reader))
+    if keep.size == 0:
+        raise TrainError(f"{path}: no annotated frames" + (" (--only-annotated)" if only_annotated else ""))
+    sizes = [reader.size(int(i))[::-1] for i in keep]
+    return Source(path, "labels", reader.classes, [reader.frame_names[i] for i in keep], reader.annotated[keep],
+                  sizes, [int(i) for i in keep], reader.read)
 
 
 def load_capture_source(path: Path) -> Source:
@@ -285,16 +234,6 @@ def split_by_capture(sources: list[Source], val_captures: list[str] | None = Non
 
 
 # --- the torch dataset ---------------------------------------------------------------------
-IMAGENET_MEAN = np.array([0.485, 0.456, 0.406], dtype=np.float32)
-IMAGENET_STD = np.array([0.229, 0.224, 0.225], dtype=np.float32)
-
-
-def normalize_image(image: np.ndarray) -> torch.Tensor:
-    """(H,W,3) uint8 RGB -> (3,H,W) float, ImageNet mean/std: what ``segment`` feeds the model."""
-    x = (image.astype(np.float32) / 255.0 - IMAGENET_MEAN) / IMAGENET_STD
-    return torch.from_numpy(np.ascontiguousarray(x.transpose(2, 0, 1)))
-
-
 def make_target(mask: np.ndarray, confidence: np.ndarray, annotated: bool, lut: np.ndarray, *,
                 min_confidence: float = 0.0, expert_weight: float = 1.0,
                 confidence_weight: bool = True, class_weight: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
@@ -319,7 +258,10 @@ def make_target(mask: np.ndarray, confidence: np.ndarray, annotated: bool, lut: 
 
 
 class FrameDataset(torch.utils.data.Dataset):
-    """Training items: normalised image (3,h,w), target indices (h,w) long, weights (h,w)."""
+    """Training items: normalised image (3,h,w), target indices (h,w) long, weights (h,w).
+
+    Without ``transform`` an item's image is exactly what ``segment`` feeds the model for that
+    frame at ``size`` (``contract.model_input``)."""
 
     def __init__(self, frames: list[Frame], classes: ClassMap, transform=None, *, min_confidence: float = 0.0,
                  expert_weight: float = 1.0, confidence_weight: bool = True,
@@ -343,7 +285,7 @@ class FrameDataset(torch.utils.data.Dataset):
             image, target, weight = out["image"], out["mask"], out["weight"]
             weight = np.where(target == IGNORE_ID, 0.0, weight).astype(np.float32)
         return {
-            "image": normalize_image(image),
+            "image": torch.from_numpy(normalize(image)),
             "target": torch.from_numpy(np.ascontiguousarray(target)).long(),
             "weight": torch.from_numpy(np.ascontiguousarray(weight, dtype=np.float32)),
         }

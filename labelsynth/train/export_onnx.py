@@ -1,17 +1,13 @@
 """model.onnx that ``labelsynth segment`` runs as it is.
 
 Input ``pixel_values`` (N,3,H,W) float RGB with ImageNet mean/std, dynamic N, H and W;
-output ``logits`` (N,C,h,w). The ONNX ``metadata_props`` carry (all JSON or text):
-
-- ``labelsynth_classes``: the class table (``ClassMap.to_json``),
-- ``labelsynth_id_map``: model output index -> class id (``segment`` needs no ``--id-map``),
-- ``labelsynth_input_size``: ``WxH`` the model was trained at (``segment``'s default size).
+output ``logits`` (N,C,h,w). The ONNX ``metadata_props`` (class table, index -> class id map,
+training input size) and the input's preparation are the segmenter contract (``contract``).
 """
 
 from __future__ import annotations
 
 import copy
-import json
 import warnings
 from pathlib import Path
 
@@ -19,10 +15,7 @@ import torch
 
 from ..classes import ClassMap
 from ..outdir import atomic_file
-
-META_CLASSES = "labelsynth_classes"
-META_ID_MAP = "labelsynth_id_map"
-META_INPUT_SIZE = "labelsynth_input_size"
+from .contract import INPUT_NAME, OUTPUT_NAME, model_metadata
 
 
 def export_onnx(model: torch.nn.Module, path: str | Path, classes: ClassMap, input_size: tuple[int, int],
@@ -38,18 +31,13 @@ def export_onnx(model: torch.nn.Module, path: str | Path, classes: ClassMap, inp
         with warnings.catch_warnings(), torch.no_grad():
             warnings.simplefilter("ignore")
             torch.onnx.export(
-                net, (dummy,), str(tmp), input_names=["pixel_values"], output_names=["logits"],
-                dynamic_axes={"pixel_values": {0: "batch", 2: "height", 3: "width"},
-                              "logits": {0: "batch", 2: "logits_height", 3: "logits_width"}},
+                net, (dummy,), str(tmp), input_names=[INPUT_NAME], output_names=[OUTPUT_NAME],
+                dynamic_axes={INPUT_NAME: {0: "batch", 2: "height", 3: "width"},
+                              OUTPUT_NAME: {0: "batch", 2: "logits_height", 3: "logits_width"}},
                 opset_version=opset, dynamo=False,
             )
         proto = onnx.load(str(tmp))
-        meta = {
-            META_CLASSES: json.dumps(classes.to_json(), sort_keys=True),
-            META_ID_MAP: json.dumps({str(i): int(c) for i, c in enumerate(classes.ids)}),
-            META_INPUT_SIZE: f"{w}x{h}",
-        }
-        for key, value in meta.items():
+        for key, value in model_metadata(classes, input_size).items():
             entry = proto.metadata_props.add()
             entry.key, entry.value = key, value
         onnx.save(proto, str(tmp))

@@ -24,10 +24,11 @@ import torch.nn.functional as F
 from .. import __version__
 from ..classes import IGNORE_ID, ClassMap
 from ..device import optimiser_options, pick_device
+from ..metrics import Counts
 from ..outdir import atomic_file, write_text_atomic
 from ..progress import console, make_progress
-from .data import (FrameDataset, Split, TrainError, load_sources, make_target, normalize_image,
-                   parse_class_weights, split_by_capture)
+from .contract import INPUT_NAME, OUTPUT_NAME, format_input_size, normalize, parse_input_size
+from .data import FrameDataset, Split, TrainError, load_sources, make_target, parse_class_weights, split_by_capture
 from .loss import confusion_counts, segmentation_loss, upsample
 from .model import build_model, input_multiple, resolve_encoder
 
@@ -72,7 +73,11 @@ class TrainConfig:
             raise TrainError(f"--expert-weight {self.expert_weight}: must be >= 0")
         if self.eval_every is not None and self.eval_every < 1:
             raise TrainError(f"--eval-every {self.eval_every}: must be at least 1")
-        parse_input_size(self.input_size)
+        self.resize_to()
+
+    def resize_to(self) -> tuple[int, int] | None:
+        """``input_size`` as (W, H) every frame is resized to (None: frames keep their size)."""
+        return parse_input_size(self.input_size, error=TrainError, minimum=16)
 
 
 @dataclass
@@ -103,8 +108,9 @@ class TrainResult:
 
 
 # --- output folder ----------------------------------------------------------------------------
-def prepare_out(out: Path, sources: list[str | Path], *, force: bool, resume: bool) -> None:
-    """Refuse a non-empty MODEL_DIR (unless ``force``/``resume``) and any MODEL_DIR that is a source."""
+def check_out(out: Path, sources: list[str | Path], *, force: bool, resume: bool) -> None:
+    """Refuse a non-empty MODEL_DIR (unless ``force``/``resume``) and any MODEL_DIR that is a source.
+    Writes nothing: MODEL_DIR is made (``make_out``) only once the sources have been read."""
     for s in sources:
         sp = Path(s).resolve()
         if out.resolve() in (sp, sp.parent if sp.is_file() else sp):
@@ -115,9 +121,13 @@ def prepare_out(out: Path, sources: list[str | Path], *, force: bool, resume: bo
         if not (out / "checkpoint.pt").is_file():
             raise TrainError(f"{out / 'checkpoint.pt'}: no checkpoint to resume from")
         return
-    if out.exists() and any(out.iterdir()):
-        if not force:
-            raise TrainError(f"{out}: output folder exists and is not empty (use --force to replace it, --resume to continue)")
+    if out.exists() and any(out.iterdir()) and not force:
+        raise TrainError(f"{out}: output folder exists and is not empty (use --force to replace it, --resume to continue)")
+
+
+def make_out(out: Path, *, resume: bool) -> None:
+    """MODEL_DIR, emptied of an earlier run's outputs unless resuming (``check_out`` allowed it)."""
+    if not resume:
         for name in OUTPUTS:
             (out / name).unlink(missing_ok=True)
     out.mkdir(parents=True, exist_ok=True)
@@ -179,7 +189,7 @@ def learning_rate(cfg: TrainConfig, step: int) -> float:
 
 def _forward_full(model, image: np.ndarray, multiple: int, device: torch.device) -> torch.Tensor:
     """Logits (C,H,W) for one whole frame, padded to ``multiple`` and cropped back."""
-    x = normalize_image(image)[None].to(device)
+    x = torch.from_numpy(normalize(image))[None].to(device)
     h, w = x.shape[-2:]
     ph, pw = (-h) % multiple, (-w) % multiple
     if ph or pw:
@@ -198,7 +208,7 @@ def evaluate(model, split: Split, classes: ClassMap, cfg: TrainConfig, multiple:
     counts = torch.zeros(3, classes.num_classes, dtype=torch.long)
     losses = []
     class_weight = parse_class_weights(cfg.class_weights, classes)
-    size = parse_input_size(cfg.input_size)
+    size = cfg.resize_to()
     for fr in split.val:
         image, mask, confidence = fr.load(size)
         target, weight = make_target(mask, confidence, fr.annotated, lut, min_confidence=cfg.min_confidence,
@@ -211,35 +221,21 @@ def evaluate(model, split: Split, classes: ClassMap, cfg: TrainConfig, multiple:
             losses.append(float(loss))
         counts += confusion_counts(logits.argmax(1)[0], t[0], classes.num_classes)
     model.train()
-    inter, npred, ntrue = counts.double()
     dice = {}
-    for i, name in enumerate(classes.names):
-        denom = float(npred[i] + ntrue[i])
-        dice[name] = None if denom == 0 else float(2 * inter[i] / denom)
+    for name, (tp, npred, ntrue) in zip(classes.names, counts.T.tolist()):
+        c = Counts(tp=tp, fp=npred - tp, fn=ntrue - tp)
+        dice[name] = c.dice if c.present or c.predicted else None
     return (float(np.mean(losses)) if losses else None), dice
 
 
 def _frame_size(split: Split, cfg: TrainConfig) -> tuple[int, int]:
     """The (W, H) the model was trained at: ``--input-size``, else the most common frame size.
     ``segment`` resizes every frame to it (the ONNX metadata says so)."""
-    size = parse_input_size(cfg.input_size)
+    size = cfg.resize_to()
     if size is not None:
         return size
     sizes = Counter(fr.size for fr in split.train + split.val)
     return sizes.most_common(1)[0][0]
-
-
-def parse_input_size(text: str | None) -> tuple[int, int] | None:
-    """``"320x240"`` -> (320, 240); None stays None (frames keep their size)."""
-    if text is None or text == "":
-        return None
-    try:
-        w, h = (int(v) for v in str(text).lower().split("x"))
-    except ValueError:
-        raise TrainError(f"--input-size {text!r}: expected WxH, e.g. 320x240") from None
-    if w < 16 or h < 16:
-        raise TrainError(f"--input-size {text!r}: both sides must be at least 16 pixels")
-    return w, h
 
 
 def write_curves(path: Path, history: list[dict[str, Any]], class_names: list[str]) -> None:
@@ -287,7 +283,7 @@ def train(sources: list[str | Path], out: str | Path, cfg: TrainConfig | None = 
     out = Path(out)
     say = log or (lambda msg: console.print(msg, markup=False, highlight=False))
     t0 = time.perf_counter()
-    prepare_out(out, sources, force=force, resume=resume)
+    check_out(out, sources, force=force, resume=resume)
     state = load_checkpoint(out / "checkpoint.pt") if resume else None
     if state is not None:  # what the model is comes from the checkpoint; asking for another is an error
         adopt_checkpoint_model(cfg, state["config"], out / "checkpoint.pt")
@@ -320,13 +316,14 @@ def train(sources: list[str | Path], out: str | Path, cfg: TrainConfig | None = 
         history = [h for h in state["history"] if h["step"] <= step]
         say(f"resuming from step {step} of {out / 'checkpoint.pt'}")
     load_seconds = time.perf_counter() - t0
+    make_out(out, resume=resume)  # every source and option has been checked: now MODEL_DIR is written
 
     from .augment import build_augment
 
     dataset = FrameDataset(split.train, classes, build_augment(cfg.crop, seed=cfg.seed + step),
                            min_confidence=cfg.min_confidence, expert_weight=cfg.expert_weight,
                            confidence_weight=cfg.confidence_weight, class_weight=class_weight,
-                           size=parse_input_size(cfg.input_size))
+                           size=cfg.resize_to())
     generator = torch.Generator().manual_seed(cfg.seed + step)
     loader = torch.utils.data.DataLoader(dataset, batch_size=min(cfg.batch_size, len(dataset)), shuffle=True,
                                          drop_last=True, num_workers=cfg.workers, generator=generator)
@@ -404,8 +401,8 @@ def train(sources: list[str | Path], out: str | Path, cfg: TrainConfig | None = 
         "history": history,
         "times": {"load_s": round(load_seconds, 3), "train_s": round(train_seconds, 3),
                   "export_s": round(export_seconds, 3), "total_s": round(seconds, 3)},
-        "outputs": {"onnx": "model.onnx", "input": "pixel_values (N,3,H,W) RGB, ImageNet mean/std",
-                    "output": "logits (N,C,h,w)", "input_size": "x".join(map(str, _frame_size(split, cfg)))},
+        "outputs": {"onnx": "model.onnx", "input": f"{INPUT_NAME} (N,3,H,W) RGB, ImageNet mean/std",
+                    "output": f"{OUTPUT_NAME} (N,C,h,w)", "input_size": format_input_size(_frame_size(split, cfg))},
     }
     write_text_atomic(out / "train.json", json.dumps(report, indent=2))
     if interrupted:

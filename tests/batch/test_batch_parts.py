@@ -13,19 +13,21 @@ import numpy as np
 import pytest
 
 from labelsynth.batch.discover import BatchError, discover, find_captures, read_capture_list
-from labelsynth.batch.marker import is_done, make_marker, output_complete, write_marker
+from labelsynth.batch.marker import is_done, make_marker, write_marker
 from labelsynth.batch.merge import merge_labels
 from labelsynth.batch.run import check_resources, one_line
 from labelsynth.batch.table import BatchRow, write_batch_html, write_batch_json
 from labelsynth.classes import ClassMap
-from labelsynth.errors import CheckError
+from labelsynth.errors import CheckError, LabelsynthError
 from labelsynth.export import LabelsDataset, write_labels_h5
+from labelsynth.rundir import RunFolder, RunInfo
 
 
 def _capture(folder: Path, pose: str = "transforms.json") -> Path:
     folder.mkdir(parents=True)
-    if pose == "sparse/0":
-        (folder / "sparse" / "0").mkdir(parents=True)
+    if pose.startswith("sparse"):  # a COLMAP model in sparse/0 or directly in sparse/
+        (folder / pose).mkdir(parents=True)
+        (folder / pose / "cameras.txt").write_text("# Camera list\n")
     else:
         (folder / pose).write_text("{}")
     (folder / "images").mkdir()
@@ -45,15 +47,35 @@ def test_discover_finds_captures_but_not_inside_them_nor_out(tmp_path):
     _capture(root / "p2" / "wound", "sparse/0")
     _capture(root / "p3", "cameras_sphere.npz")
     _capture(root / "p3" / "nested")  # inside a capture: not searched
+    _capture(root / "p4", "sparse")  # a COLMAP model directly in sparse/, as load_capture reads it
     _capture(root / "out" / "captures" / "old")  # the batch's own OUT
     (root / "empty").mkdir()
+    (root / "empty_model" / "sparse" / "0").mkdir(parents=True)  # no model in it: load_capture would refuse
     (root / ".hidden").mkdir()
     _capture(root / ".hidden" / "c")
     assert [p.relative_to(root).as_posix() for p in find_captures(root, exclude=root / "out")] == \
-        ["p1/wound", "p2/wound", "p3"]
+        ["p1/wound", "p2/wound", "p3", "p4"]
     jobs = discover(root, root / "out")
-    assert [j.name for j in jobs] == ["p1__wound", "p2__wound", "p3"]  # same folder name: the path decides
+    assert [j.name for j in jobs] == ["p1__wound", "p2__wound", "p3", "p4"]  # same folder name: the path decides
     assert [j.name for j in discover(root / "p3")] == ["p3"]  # a capture is its own root
+
+
+def test_a_colmap_model_directly_in_sparse_is_found_and_loads(tmp_path):
+    """Batch and the loaders share one rule (``capture.load.is_capture``): a capture whose COLMAP
+    model is in ``sparse/`` (no ``0/``) is found by discovery, listed, and loads."""
+    from labelsynth.capture import load_capture
+
+    from ..capture.test_capture_colmap import make_colmap_capture
+
+    cap = make_colmap_capture(tmp_path / "root" / "colmap_flat")
+    (cap / "sparse" / "0").rename(cap / "sparse_model")
+    (cap / "sparse").rmdir()
+    (cap / "sparse_model").rename(cap / "sparse")
+    assert (cap / "sparse" / "cameras.txt").is_file()
+    assert find_captures(tmp_path / "root") == [cap]
+    (tmp_path / "list.txt").write_text("root/colmap_flat\n")
+    assert [j.path for j in discover(tmp_path / "list.txt")] == [cap]
+    assert load_capture(cap).names == ["a", "b"]
 
 
 def test_capture_list_file(tmp_path):
@@ -106,7 +128,7 @@ def test_is_done_needs_the_marker_and_a_complete_output(tmp_path):
     for f in ("run.json", "labels.h5", "field.pt"):
         (output / "masks").mkdir(parents=True, exist_ok=True)
         (output / f).write_text("x")
-    assert output_complete(output, report=False) and not output_complete(output, report=True)
+    assert RunFolder(output).is_finished(report=False) and not RunFolder(output).is_finished(report=True)
     assert not is_done(out, "c", marker, output, report=False)  # no marker yet
     write_marker(out, "c", marker)
     assert is_done(out, "c", marker, output, report=False)
@@ -132,7 +154,7 @@ def test_bad_options_fail_before_any_capture_or_ray(tmp_path):
 
     with pytest.raises(BatchError, match="--device cuda needs --gpus-per-capture"):
         run_batch(tmp_path, tmp_path / "out", ExpandOptions(device="cuda"))
-    with pytest.raises(BatchError, match="--labels must be one of"):
+    with pytest.raises(LabelsynthError, match="--labels must be one of"):
         run_batch(tmp_path, tmp_path / "out", ExpandOptions(labels="all"))
     _capture(tmp_path / "c")
     with pytest.raises(Exception, match="unknown recipe 'nope'"):
@@ -208,7 +230,8 @@ def test_merge_refuses_different_class_tables(tmp_path):
 def test_quality_columns_come_from_the_capture_report(tmp_path):
     from labelsynth.batch.table import read_quality
 
-    (tmp_path / "run.json").write_text(json.dumps({"seconds": {"geometry": 10.0, "semantics": 5.0, "render": 1.5}}))
+    RunFolder(tmp_path).write_run(RunInfo("/c/a", "annotations", seconds={"geometry": 10.0, "semantics": 5.0,
+                                                                        "render": 1.5}))
     (tmp_path / "report.json").write_text(json.dumps({"summary": {
         "num_frames": 6, "median_agreement": {"wound_bed": 0.93}, "median_loo_dice": {"wound_bed": 0.88},
         "flagged": ["frame_003"]}}))

@@ -64,6 +64,15 @@ def make_capture(
     return root
 
 
+def capture_with_annotations(root: Path, files: dict[str, bytes], n: int = 4) -> Path:
+    """A capture of ``n`` frames (frame_000, ...) whose annotations/ holds ``files`` (name -> bytes)."""
+    make_capture(root, n=n)
+    (root / "annotations").mkdir()
+    for name, data in files.items():
+        (root / "annotations" / name).write_bytes(data)
+    return root
+
+
 def snapshot(root: Path) -> dict[str, str]:
     """Relative path -> sha256 of every file under ``root`` (to prove nothing was written)."""
     return {

@@ -14,6 +14,7 @@ from typer.testing import CliRunner
 from labelsynth.capture.poses import estimate_poses
 from labelsynth.cli import app
 from labelsynth.errors import LabelsynthError
+from labelsynth.evaluation.poses import frame_poses, pose_errors
 from labelsynth.evaluation.synth import SynthConfig, synthesize
 
 
@@ -22,35 +23,6 @@ def synth_capture(tmp_path_factory) -> Path:
     out = tmp_path_factory.mktemp("poses") / "s"
     synthesize(out, SynthConfig(frames=14, annotated=2, width=320, height=240, seed=5), progress=False)
     return out / "capture"
-
-
-def umeyama(src: np.ndarray, dst: np.ndarray) -> tuple[float, np.ndarray, np.ndarray]:
-    """Similarity (s, R, t) minimising |dst - (s R src + t)|^2."""
-    mu_s, mu_d = src.mean(0), dst.mean(0)
-    s_, d_ = src - mu_s, dst - mu_d
-    U, S, Vt = np.linalg.svd(d_.T @ s_ / len(src))
-    D = np.eye(3)
-    D[2, 2] = np.sign(np.linalg.det(U @ Vt))
-    R = U @ D @ Vt
-    scale = np.trace(np.diag(S) @ D) / ((s_**2).sum() / len(src))
-    return scale, R, mu_d - scale * R @ mu_s
-
-
-def pose_errors(truth: dict, est: dict) -> tuple[np.ndarray, np.ndarray]:
-    """Per-frame rotation error (degrees) and centre error (fraction of the camera-path size)."""
-    T = {f["file_path"]: np.array(f["transform_matrix"]) for f in truth["frames"]}
-    E = {f["file_path"]: np.array(f["transform_matrix"]) for f in est["frames"]}
-    keys = [k for k in T if k in E]
-    ct = np.array([T[k][:3, 3] for k in keys])
-    ce = np.array([E[k][:3, 3] for k in keys])
-    s, R, t = umeyama(ce, ct)
-    rot = []
-    for k in keys:
-        c = (np.trace((R @ E[k][:3, :3]).T @ T[k][:3, :3]) - 1) / 2
-        rot.append(np.degrees(np.arccos(np.clip(c, -1, 1))))
-    aligned = s * ce @ R.T + t
-    size = np.linalg.norm(ct.max(0) - ct.min(0))
-    return np.array(rot), np.linalg.norm(aligned - ct, axis=1) / size
 
 
 def test_poses_match_truth_and_out_writes_elsewhere(synth_capture: Path, tmp_path: Path) -> None:
@@ -69,7 +41,8 @@ def test_poses_match_truth_and_out_writes_elsewhere(synth_capture: Path, tmp_pat
     est = json.loads(report.output.read_text())
     assert est["camera_model"] == "OPENCV" and (est["w"], est["h"]) == (320, 240)
     assert abs(est["fl_x"] / truth["fl_x"] - 1) < 0.02
-    rot, centre = pose_errors(truth, est)
+    errors = pose_errors(frame_poses(truth), frame_poses(est))
+    rot, centre = errors.rotation_deg, errors.centre
     print(f"SfM: rotation error median {np.median(rot):.3f} deg, centre error max {centre.max():.4f} of path size, "
           f"reprojection {report.mean_reprojection_error:.3f} px")
     assert np.median(rot) < 1.0

@@ -13,7 +13,7 @@ from typer.testing import CliRunner
 from labelsynth.cameras import Camera
 from labelsynth.cli import app
 from labelsynth.errors import LabelsynthError
-from labelsynth.evaluation.synth import SynthConfig, _AroundScene, annotated_indices, background_image, synthesize
+from labelsynth.evaluation.synth import AroundScene, SynthConfig, annotated_indices, background_image, synthesize
 
 W, H, N = 160, 120, 8
 AW, AH, AN = 64, 48, 8  # the all-around capture
@@ -114,6 +114,42 @@ def test_truth_agrees_with_colour(synth_out: Path) -> None:
     _check_truth_agrees_with_colour(synth_out, W, H)
 
 
+def test_synth_scene_renders_the_written_frames(synth_out: Path) -> None:
+    """Rebuilt from scene.json, the scene renders each frame's image, truth and depth exactly
+    (novel views are scored against it)."""
+    from labelsynth.evaluation.synth import SynthScene
+
+    scene = SynthScene.from_truth(synth_out / "truth")
+    names, cams = _cameras(synth_out / "capture")
+    for i in (0, N - 1):
+        rgb, truth, depth = scene.render(cams[i])
+        np.testing.assert_array_equal(rgb, cv2.imread(str(synth_out / "capture" / "images" / f"{names[i]}.png"))[..., ::-1])
+        np.testing.assert_array_equal(truth, _gray(synth_out / "truth" / f"{names[i]}.png"))
+        np.testing.assert_array_equal(depth, np.load(synth_out / "truth" / "depth" / f"{names[i]}.npy"))
+
+
+def test_the_caster_without_rescaling_finds_the_same_hits() -> None:
+    """synth casts with ``render.surface.SurfaceCaster(rescale=False)`` (its captures depend on the
+    exact float32 rays); the hits are those of the rescaled cast, to float32 rounding."""
+    import trimesh
+
+    from labelsynth.render.surface import SurfaceCaster
+
+    mesh = trimesh.creation.icosphere(subdivisions=3, radius=0.5)
+    mesh.apply_translation([0.3, -0.2, 0.1])
+    rng = np.random.default_rng(1)
+    origins = rng.normal(size=(400, 3))
+    origins = 2.0 * origins / np.linalg.norm(origins, axis=1, keepdims=True)
+    dirs = rng.uniform(-0.5, 0.9, size=(400, 3)) - origins  # some rays miss the sphere
+    dirs /= np.linalg.norm(dirs, axis=1, keepdims=True)
+    hit, points, faces, _ = SurfaceCaster(mesh).cast(origins, dirs)
+    hit_raw, points_raw, faces_raw, _ = SurfaceCaster(mesh, rescale=False).cast(origins, dirs)
+    assert 0 < hit.sum() < len(hit)
+    assert np.array_equal(hit_raw, hit)
+    assert np.mean(faces_raw[hit] == faces[hit]) > 0.98  # a ray through an edge may pick either triangle
+    np.testing.assert_allclose(points_raw[hit], points[hit], atol=1e-5)
+
+
 def test_truth_is_consistent_across_views(synth_out: Path) -> None:
     _check_consistent_across_views(synth_out, [(0, 3), (1, 5), (2, 7), (4, 6)], min_checked=200)
 
@@ -205,12 +241,12 @@ def test_refuses_existing_out(tmp_path: Path) -> None:
 
 
 def test_interrupted_run_leaves_nothing(tmp_path: Path, monkeypatch) -> None:
-    import labelsynth.evaluation.synth as synth_mod
+    from labelsynth.evaluation.synth import writer
 
     def boom(*args, **kwargs):
         raise KeyboardInterrupt
 
-    monkeypatch.setattr(synth_mod, "predict_errors", boom)
+    monkeypatch.setattr(writer, "predict_errors", boom)
     out = tmp_path / "s"
     with pytest.raises(KeyboardInterrupt):
         synthesize(out, SynthConfig(frames=2, annotated=1, width=32, height=24), progress=False)
@@ -340,7 +376,7 @@ def test_all_around_region_of_interest(around_out: Path) -> None:
 def test_all_around_continuous_across_the_seam() -> None:
     """Labels, colour and relief run on across v = +-pi*radius; the tube is closed there."""
     for seed in (0, 4):  # full rings: the wound crosses the seam
-        scene = _AroundScene(np.random.default_rng([seed, 0]), 384)
+        scene = AroundScene(np.random.default_rng([seed, 0]), 384)
         assert scene.full_ring
         # the step from the last row (v) to the first is no larger than any step between rows
         # inside (a texture that is not periodic fails all four by far)

@@ -15,6 +15,8 @@ from labelsynth.classes import ClassMap
 from labelsynth.export import (
     ExportError,
     LabelsDataset,
+    LabelsReadError,
+    LabelsReader,
     LabelsWriter,
     read_labels_h5,
     write_labels_h5,
@@ -203,6 +205,28 @@ def test_dataset_transform(labels_file):
     crop = A.Compose([A.CenterCrop(16, 16)])  # changes size, confidence not declared
     with pytest.raises(ExportError, match="additional_targets"):
         LabelsDataset(path, transform=crop)[0]
+
+
+def test_reader_checks_up_front_and_streams(labels_file):
+    path, (images, masks, conf, names, annotated) = labels_file
+    reader = LabelsReader(path)
+    assert len(reader) == N and reader.size(0) == (H, W) and reader.frame_sizes is None
+    assert reader.frame_names == names and reader.annotated.tolist() == annotated.tolist()
+    copy = pickle.loads(pickle.dumps(reader))  # no handle travels
+    for r in (reader, copy):
+        image, mask, confidence = r.read(2)
+        assert np.array_equal(image, images[2]) and np.array_equal(mask, masks[2])
+        assert np.allclose(confidence, conf[2], atol=1e-3)
+        r.close()
+    with h5py.File(path, "a") as f:
+        f.create_dataset("frame_sizes", data=np.full((N, 2), H + 1, np.int32))  # larger than the datasets
+    with pytest.raises(LabelsReadError, match="frame_sizes"):
+        LabelsDataset(path)
+    with h5py.File(path, "a") as f:
+        del f["frame_sizes"]
+        del f.attrs["format"]
+    with pytest.raises(LabelsReadError, match=f"{path}: not a labelsynth labels.h5"):
+        LabelsDataset(path)
 
 
 def test_png_mask_round_trip_cv2_and_pil(tmp_path):

@@ -62,7 +62,7 @@ def _one_line_error(result, *needles: str) -> str:
 def test_train_two_sources_writes_everything_and_segment_runs_it(sources, tmp_path):
     import onnx
 
-    from labelsynth.evaluation.segment import segment_capture
+    from labelsynth.train.segment import segment_capture
 
     before = {p: p.stat().st_mtime_ns for p in sources["cap0"].rglob("*")}
     out = tmp_path / "model"
@@ -101,7 +101,7 @@ def test_train_two_sources_writes_everything_and_segment_runs_it(sources, tmp_pa
 
 def test_segment_reads_a_non_identity_id_map_from_the_metadata(tmp_path):
     """Class ids 0 and 7: the model's index 1 must come out as id 7 without --id-map."""
-    from labelsynth.evaluation.segment import OnnxSegmenter
+    from labelsynth.train.segment import OnnxSegmenter
     from labelsynth.train.export_onnx import export_onnx
 
     classes = ClassMap.from_dict({"classes": [{"id": 0, "name": "background"}, {"id": 7, "name": "wound"}]})
@@ -324,7 +324,7 @@ def test_corrupt_checkpoint_names_the_file(sources, tmp_path):
 def test_labels_h5_missing_datasets_or_other_version(tmp_path):
     import h5py
 
-    from labelsynth.export.dataset import FORMAT
+    from labelsynth.export import FORMAT
 
     bad = tmp_path / "missing.h5"
     with h5py.File(bad, "w") as f:
@@ -377,3 +377,64 @@ def test_class_weights_multiply_the_pixel_weights():
         parse_class_weights("9:1", classes)
     with pytest.raises(TrainError, match="id:weight"):
         parse_class_weights("0=1", classes)
+
+
+# --- a batch's merged dataset.h5 -------------------------------------------------------------------
+def _merged(tmp_path: Path) -> tuple[Path, dict[str, tuple[np.ndarray, np.ndarray]]]:
+    """OUT/dataset.h5 over two captures of different sizes; their pixels hold no fill value
+    (images 1..255, masks of known classes, confidence > 0)."""
+    from labelsynth.batch import merge_labels
+    from labelsynth.export import write_labels_h5
+
+    out = tmp_path / "out"
+    classes = ClassMap.default()
+    frames, parts = {}, []
+    for seed, (name, h, w) in enumerate((("small", 32, 40), ("large", H, W))):
+        rng = np.random.default_rng(seed)
+        images = rng.integers(1, 256, (3, h, w, 3), dtype=np.uint8)
+        masks = rng.integers(0, 6, (3, h, w), dtype=np.uint8)
+        path = out / "captures" / name / "labels.h5"
+        write_labels_h5(path, images=images, masks=masks, confidence=np.full((3, h, w), 0.8, np.float32),
+                        frame_names=[f"{name}_{i}.png" for i in range(3)], classes=classes, annotated=[True] * 3)
+        parts.append((name, path))
+        for i in range(3):
+            frames[f"{name}_{i}.png"] = (images[i], masks[i])
+    return merge_labels(out, parts), frames
+
+
+def test_train_on_a_merged_dataset_never_sees_a_padded_pixel(tmp_path, monkeypatch):
+    from labelsynth.train import data
+
+    dataset, frames = _merged(tmp_path)
+    seen = []
+    real_load = data.Frame.load
+
+    def recording_load(self, size=None):
+        loaded = real_load(self, size)
+        seen.append((self.name, loaded))
+        return loaded
+
+    monkeypatch.setattr(data.Frame, "load", recording_load)
+    one_step_of_every_frame = ["--steps", "1", "--batch-size", "5", "--crop", "32", "--device", "cpu"]
+    result = _invoke(dataset, "--out", tmp_path / "model", *one_step_of_every_frame)
+    assert result.exit_code == 0, result.output
+    assert {name for name, _ in seen} == set(frames)  # 5 frames trained on in one step, 1 validated
+    for name, (image, mask, confidence) in seen:
+        assert np.array_equal(image, frames[name][0]) and np.array_equal(mask, frames[name][1])  # cropped back
+        assert (confidence > 0).all()
+    loaded, classes = load_sources([dataset])
+    assert sorted(set(loaded[0].sizes)) == [(40, 32), (W, H)]
+    items = data.FrameDataset(split_by_capture(loaded).train, classes)
+    for k, fr in enumerate(items.frames):
+        item = items[k]
+        assert tuple(item["target"].shape) == fr.size[::-1]
+        assert (item["target"] != IGNORE_ID).all() and (item["weight"] > 0).all()
+
+
+def test_train_on_a_merged_dataset_with_a_capture_file_gone(tmp_path):
+    dataset, _ = _merged(tmp_path)
+    gone = dataset.parent / "captures" / "small" / "labels.h5"
+    gone.unlink()
+    model = tmp_path / "model"
+    _one_line_error(_invoke(dataset, "--out", model, *TINY), str(dataset), str(gone), "missing")
+    assert not model.exists()

@@ -1,13 +1,14 @@
-"""The "2D" baseline: run an ONNX semantic segmenter over every frame of a capture.
+"""``labelsynth segment``: run an ONNX semantic segmenter over every frame of a capture.
 
-The paper compares the 3D field with the per-frame 2D segmenter it was trained from; this
-module produces those per-frame masks (``predictions/``) with onnxruntime, so any exported
+It runs what ``labelsynth train`` exports (and is the "2D" baseline the paper compares the
+3D field with): per-frame masks (e.g. ``predictions/``) with onnxruntime, so any exported
 model (SegFormer from HF transformers, a torchvision DeepLab, ...) works without torch.
 
-Conventions (SegFormer-style by default):
+Conventions (SegFormer-style by default; the input side is the segmenter contract, ``contract``,
+which training uses too, so a model sees at inference the pixels it was trained on):
 - input: the input named ``pixel_values`` (else the model's first input), NCHW float32 RGB,
-  ImageNet mean/std normalised, resized to the model's static input size, else to
-  ``input_size``, else to 512x512;
+  ImageNet mean/std normalised, resized (``contract.resize_image``: area when shrinking) to the
+  model's static input size, else to ``input_size``, else to 512x512;
 - output: the model's first output, logits (N, C, h, w) at any resolution; the logits are
   upsampled bilinearly to the frame size and then arg-maxed (upsampling labels instead would
   give blocky edges);
@@ -20,7 +21,6 @@ Conventions (SegFormer-style by default):
 
 from __future__ import annotations
 
-import json
 import time
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
@@ -36,12 +36,10 @@ from ..classes import IGNORE_ID, ClassMap, parse_id_pairs
 from ..errors import LabelsynthError
 from ..outdir import building
 from ..progress import make_progress
+from .contract import (IMAGENET_MEAN, IMAGENET_STD, INPUT_NAME, META_INPUT_SIZE, metadata_id_map, model_input,
+                       parse_input_size)
 
-DEFAULT_INPUT_SIZE = (512, 512)  # (width, height)
-META_ID_MAP = "labelsynth_id_map"  # written by labelsynth.train.export_onnx
-META_INPUT_SIZE = "labelsynth_input_size"
-IMAGENET_MEAN = (0.485, 0.456, 0.406)
-IMAGENET_STD = (0.229, 0.224, 0.225)
+DEFAULT_INPUT_SIZE = (512, 512)  # (width, height) of a foreign model with no size of its own
 DEVICES = ("auto", "cpu", "cuda")
 _RESIZE_CHANNELS = 4  # cv2.resize is only safe for a few channels at a time
 
@@ -51,25 +49,6 @@ class SegmentError(LabelsynthError, ValueError):
 
 
 # --- option parsing (shared by the CLI and the library) ----------------------------------
-def parse_input_size(text: str | Sequence[int] | None) -> tuple[int, int] | None:
-    """``"512x384"`` (width x height) or ``"512"`` (square) -> ``(512, 384)``; None stays None."""
-    if text is None:
-        return None
-    if not isinstance(text, str):
-        values = [int(v) for v in text]
-    else:
-        parts = text.lower().replace(" ", "").split("x")
-        try:
-            values = [int(p) for p in parts]
-        except ValueError:
-            raise SegmentError(f"--input-size {text!r}: expected WxH, e.g. 512x512") from None
-    if len(values) == 1:
-        values = values * 2
-    if len(values) != 2 or min(values) < 1:
-        raise SegmentError(f"--input-size {text!r}: expected WxH with positive integers, e.g. 512x512")
-    return values[0], values[1]
-
-
 def parse_id_map(text: str | Mapping[int, int] | None) -> dict[int, int] | None:
     """``"0:0,1:1,2:3"`` -> ``{0: 0, 1: 1, 2: 3}`` (model output index -> class id).
 
@@ -152,20 +131,16 @@ class OnnxSegmenter:
         if id_map is None:
             id_map = self._metadata_id_map()
         self.id_map = parse_id_map(id_map) or {}
-        self._mean = np.asarray(mean, dtype=np.float32).reshape(1, 1, 3) * 255.0
-        self._inv_std = 1.0 / (np.asarray(std, dtype=np.float32).reshape(1, 1, 3) * 255.0)
+        self.mean, self.std = tuple(mean), tuple(std)
         self._lut: np.ndarray | None = None
         self.num_model_classes: int | None = None
 
     def _metadata_id_map(self) -> dict[int, int] | None:
         """The index -> class id map that ``labelsynth train`` stores in the ONNX metadata, if any."""
-        text = self.metadata.get(META_ID_MAP)
-        if not text:
-            return None
         try:
-            return {int(k): int(v) for k, v in json.loads(text).items()}
-        except (ValueError, TypeError, AttributeError) as exc:
-            raise SegmentError(f"{self.model_path}: metadata {META_ID_MAP!r} is not an index -> id map ({exc})") from None
+            return metadata_id_map(self.metadata)
+        except ValueError as exc:
+            raise SegmentError(f"{self.model_path}: {exc}") from None
 
     def _open_session(self, ort, device: str):
         """An onnxruntime session on the chosen providers; a file it cannot load is a one-line error."""
@@ -182,7 +157,7 @@ class OnnxSegmenter:
         """Sets the input's name, batch, size and dtype, checking it takes (N, 3, H, W) images;
         a model with a fixed size refuses any other ``--input-size`` rather than fail mid-run."""
         inputs = self.session.get_inputs()
-        self._input = next((i for i in inputs if i.name == "pixel_values"), inputs[0])
+        self._input = next((i for i in inputs if i.name == INPUT_NAME), inputs[0])
         self.input_name = self._input.name
         shape = list(self._input.shape)
         if len(shape) != 4:
@@ -192,7 +167,7 @@ class OnnxSegmenter:
             raise SegmentError(f"{self.model_path}: input {self.input_name!r} takes {channels} channels, expected 3 (RGB)")
         self._static_batch = _static_dim(shape[0])
         static_w, static_h = _static_dim(shape[3]), _static_dim(shape[2])
-        requested = parse_input_size(input_size)
+        requested = parse_input_size(input_size, error=SegmentError)
         if static_w is not None and static_h is not None:
             if requested is not None and requested != (static_w, static_h):
                 raise SegmentError(
@@ -215,14 +190,11 @@ class OnnxSegmenter:
 
     # --- pieces ---------------------------------------------------------------------------
     def preprocess(self, image_rgb: np.ndarray) -> np.ndarray:
-        """(H, W, 3) uint8 RGB -> (3, h_in, w_in) normalised float, as the model was trained."""
+        """(H, W, 3) uint8 RGB -> (3, h_in, w_in) normalised float: ``contract.model_input``, the
+        pixels ``labelsynth train`` trained the model on."""
         if image_rgb.ndim != 3 or image_rgb.shape[2] != 3:
             raise SegmentError(f"expected an (H, W, 3) RGB image, got shape {image_rgb.shape}")
-        w_in, h_in = self.input_size
-        if image_rgb.shape[:2] != (h_in, w_in):
-            image_rgb = cv2.resize(image_rgb, (w_in, h_in), interpolation=cv2.INTER_LINEAR)
-        x = (image_rgb.astype(np.float32) - self._mean) * self._inv_std
-        return np.ascontiguousarray(x.transpose(2, 0, 1))
+        return model_input(image_rgb, self.input_size, self.mean, self.std)
 
     def _class_lut(self, num_classes: int) -> np.ndarray:
         """Arg-max index -> class id, checked once against the 0..254 (+255 ignore) range."""

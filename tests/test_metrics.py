@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 
 from labelsynth.classes import ClassInfo, ClassMap
-from labelsynth.evaluation.metrics import Counts, confusion_matrix, frame_counts, score_frames
+from labelsynth.metrics import Counts, confusion_matrix, frame_counts, score_frames
 
 CM = ClassMap.default()
 
@@ -117,3 +117,19 @@ def test_shape_mismatch_and_bad_lists():
         frame_counts(np.zeros((2, 2), np.uint8), np.zeros((2, 3), np.uint8), CM)
     with pytest.raises(ValueError):
         score_frames([np.zeros((2, 2), np.uint8)], [], CM)
+
+
+def test_one_metrics_module_for_report_train_and_evaluation():
+    """``labelsynth.evaluation.metrics`` is the same module's names; the report and training
+    score with ``labelsynth.metrics`` and do not load ``evaluation`` (not the product path)."""
+    import subprocess
+    import sys
+
+    import labelsynth.evaluation.metrics as old
+    import labelsynth.metrics as new
+
+    assert old.Counts is new.Counts and old.score_frames is new.score_frames and old.frame_counts is new.frame_counts
+    code = ("import sys, labelsynth.report, labelsynth.train.loop; "
+            "print(sorted(m for m in sys.modules if m.startswith('labelsynth.evaluation')))")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout
+    assert out.strip() == "[]"

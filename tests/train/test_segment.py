@@ -1,4 +1,4 @@
-"""The 2D baseline: a real ONNX model (exported from a tiny torch net) run over a tiny capture."""
+"""`segment` (the 2D baseline): a real ONNX model (exported from a tiny torch net) run over a tiny capture."""
 
 from __future__ import annotations
 
@@ -17,11 +17,10 @@ from typer.testing import CliRunner  # noqa: E402
 
 from labelsynth.cli import app  # noqa: E402
 from labelsynth.errors import LabelsynthError  # noqa: E402
-from labelsynth.evaluation.segment import (  # noqa: E402
+from labelsynth.train.segment import (  # noqa: E402
     OnnxSegmenter,
     SegmentError,
     parse_id_map,
-    parse_input_size,
     resolve_out_dir,
     segment_capture,
 )
@@ -225,14 +224,12 @@ def test_id_map(capture, models, tmp_path):
     assert 1 not in report.class_pixels and 4 in report.class_pixels and 255 in report.class_pixels
 
 
-def test_option_parsing():
-    assert parse_input_size("512x384") == (512, 384)
-    assert parse_input_size("256") == (256, 256)
-    assert parse_input_size(None) is None
+def test_option_parsing(models):
     assert parse_id_map("0:0,1:1,2:3") == {0: 0, 1: 1, 2: 3}
     for bad in ("axb", "0x10", "1x2x3"):
-        with pytest.raises(SegmentError):
-            parse_input_size(bad)
+        with pytest.raises(SegmentError, match="--input-size"):
+            OnnxSegmenter(models["dynamic"], device="cpu", input_size=bad)
+    assert OnnxSegmenter(models["dynamic"], device="cpu", input_size="24").input_size == (24, 24)
     for bad in ("0-1", "1:300", "1:-1", "x:1", "1:2,1:3"):
         with pytest.raises(SegmentError):
             parse_id_map(bad)

@@ -1,0 +1,104 @@
+"""Camera paths: a hand-held arc above the wound (one-sided) and one turn around the limb
+(all-around), each with smooth random wobbles in distance, elevation or tilt, and roll.
+
+A path returns its cameras and the summary ``scene.json`` records as ``camera_path``. What a
+path could vary further (zoom, uneven speed along the path) belongs here, as options of the path.
+"""
+
+from __future__ import annotations
+
+from typing import TYPE_CHECKING
+
+import numpy as np
+
+from ...cameras import Camera, look_at
+from .config import SynthConfig
+
+if TYPE_CHECKING:
+    from .around import AroundScene
+    from .scene import OneSidedScene
+
+
+def smooth_curve(rng: np.random.Generator, t: np.ndarray, freqs: tuple[float, ...]) -> np.ndarray:
+    """A smooth random curve in about [-1, 1] over t in [0, 1] (sum of a few sines)."""
+    out = np.zeros_like(t)
+    total = 0.0
+    for f in freqs:
+        a = rng.uniform(0.5, 1.0)
+        out += a * np.sin(2 * np.pi * f * rng.uniform(0.8, 1.2) * t + rng.uniform(0, 2 * np.pi))
+        total += a
+    return out / total
+
+
+def hand_held_path(rng: np.random.Generator, scene: OneSidedScene, cfg: SynthConfig) -> tuple[list[Camera], dict]:
+    """A hand-held phone path: an arc above the wound with varying elevation, distance and roll."""
+    hfov = np.deg2rad(rng.uniform(55, 65))
+    fx = cfg.width / (2 * np.tan(hfov / 2))
+    frac = rng.uniform(0.25, 0.35)  # wound diameter / image width at the typical distance
+    d0 = 2 * scene.wound_radius / (frac * 2 * np.tan(hfov / 2))
+    n = cfg.frames
+    t = np.linspace(0.0, 1.0, n)
+    sweep = np.deg2rad(rng.uniform(200, 300)) * (1 if rng.random() < 0.5 else -1)
+    az = rng.uniform(0, 2 * np.pi) + sweep * t + 0.08 * smooth_curve(rng, t, (1.7, 3.1))
+    el_lo, el_hi = np.deg2rad(35), np.deg2rad(80)
+    el_curve = 0.5 + 0.5 * smooth_curve(rng, t, (0.8, 1.3, 2.2))
+    el_curve = (el_curve - el_curve.min()) / max(1e-6, np.ptp(el_curve))
+    el = el_lo + (el_hi - el_lo) * (0.05 + 0.9 * el_curve)
+    dist = d0 * (1 + 0.2 * smooth_curve(rng, t, (0.9, 1.9)))
+    roll = np.deg2rad(6) * smooth_curve(rng, t, (1.1, 2.7))
+    jit = 0.15 * scene.wound_radius
+    tx, ty = jit * smooth_curve(rng, t, (1.3, 2.9)), jit * smooth_curve(rng, t, (1.6, 3.3))
+    c0 = scene.center
+    normal, t1, t2 = np.array([0.0, 0, 1]), np.array([1.0, 0, 0]), np.array([0.0, 1, 0])
+    cams = []
+    for i in range(n):
+        eye = c0 + dist[i] * (np.cos(el[i]) * (np.cos(az[i]) * t1 + np.sin(az[i]) * t2) + np.sin(el[i]) * normal)
+        target = c0 + tx[i] * t1 + ty[i] * t2
+        c2w = look_at(eye, target, up=normal)
+        cr, sr = np.cos(roll[i]), np.sin(roll[i])
+        c2w[:3, :3] = c2w[:3, :3] @ np.array([[cr, -sr, 0], [sr, cr, 0], [0, 0, 1]])
+        cams.append(Camera(cfg.width, cfg.height, fx, fx, cfg.width / 2, cfg.height / 2, c2w))
+    info = {"hfov_deg": float(np.rad2deg(hfov)), "typical_distance": float(d0),
+            "elevation_deg": [float(np.rad2deg(el.min())), float(np.rad2deg(el.max()))],
+            "distance": [float(dist.min()), float(dist.max())], "sweep_deg": float(np.rad2deg(sweep))}
+    return cams, info
+
+
+def orbit_path(rng: np.random.Generator, scene: AroundScene, cfg: SynthConfig) -> tuple[list[Camera], dict]:
+    """An all-around path: one turn around the limb's axis (world x), always aimed at the axis
+    near the wound, with smooth random wobbles in distance, position along the axis, tilt
+    (looking a little along the limb) and roll. The axis runs across the image."""
+    hfov = np.deg2rad(rng.uniform(55, 65))
+    tan = np.tan(hfov / 2)
+    fx = cfg.width / (2 * tan)
+    r, R = scene.radius, scene.wound_radius
+    # distance from the axis: the limb's outline takes 75-95 % of the image height, so the band
+    # runs through the frame and the limb's sides show; the region of interest (about the image
+    # footprint at the axis) then holds the limb's cross-section with room to spare
+    vhalf = np.arctan(tan * cfg.height / cfg.width)
+    d0 = float(r / np.sin(rng.uniform(0.75, 0.95) * vhalf))
+    n = cfg.frames
+    t = np.arange(n) / n
+    turn = 2 * np.pi * (1 if rng.random() < 0.5 else -1)
+    theta = rng.uniform(-np.pi, np.pi) + turn * t + 0.08 * smooth_curve(rng, t, (1.7, 3.1))
+    dist = d0 * (1 + 0.12 * smooth_curve(rng, t, (0.9, 1.9)))
+    along = 0.5 * R * smooth_curve(rng, t, (0.7, 1.6))  # aim point along the axis
+    tilt = np.deg2rad(rng.uniform(5, 15)) * smooth_curve(rng, t, (0.8, 1.7))
+    roll = np.deg2rad(6) * smooth_curve(rng, t, (1.1, 2.7))
+    x_axis = np.array([1.0, 0, 0])
+    cams = []
+    for i in range(n):
+        radial = np.array([0.0, np.sin(theta[i]), np.cos(theta[i])])
+        tangent = np.array([0.0, np.cos(theta[i]), -np.sin(theta[i])])
+        target = scene.axis_point + along[i] * x_axis
+        eye = target + dist[i] * (np.cos(tilt[i]) * radial + np.sin(tilt[i]) * x_axis)
+        c2w = look_at(eye, target, up=tangent)  # image right = +x (the axis)
+        cr, sr = np.cos(roll[i]), np.sin(roll[i])
+        c2w[:3, :3] = c2w[:3, :3] @ np.array([[cr, -sr, 0], [sr, cr, 0], [0, 0, 1]])
+        cams.append(Camera(cfg.width, cfg.height, fx, fx, cfg.width / 2, cfg.height / 2, c2w))
+    info = {"kind": "orbit", "axis": "x", "hfov_deg": float(np.rad2deg(hfov)), "typical_distance": float(d0),
+            "distance": [float(dist.min()), float(dist.max())],
+            "tilt_deg": [float(np.rad2deg(tilt.min())), float(np.rad2deg(tilt.max()))],
+            "along_axis": [float(along.min()), float(along.max())], "sweep_deg": float(np.rad2deg(turn)),
+            "start_angle_deg": float(np.rad2deg(theta[0]))}
+    return cams, info
