@@ -20,7 +20,10 @@ and at full resolution, from the mesh the masks are rendered from:
   from every view's truth mask) and by the pixel's brightness (dark < 0.15, bright > 0.85
   in every channel, else mid);
 - depth sanity: the share of hit pixels whose surface point lies in front of the nearest
-  camera's near plane or on the cube's walls (a shell the SDF grew to explain a backdrop).
+  camera's near plane or on the cube's walls (a shell the SDF grew to explain a backdrop);
+- unseen surface (``render.support``): the share of the view's pixels whose surface no
+  annotated frame saw, and the shares of its object-labelled-background and false-object
+  pixels that lie there (labels the head guessed rather than learnt).
 
 Prints one line per view and the totals; writes OUT/diagnose.json, and with ``--figures``
 an error image per view (green: missed object, red: false object, blue: hole in the volume
@@ -69,17 +72,17 @@ def hull_distance(hull: np.ndarray, pts: np.ndarray) -> np.ndarray:
 
 
 @torch.no_grad()
-def volume_render(sem, cam, chunk: int = 8192):
+def volume_render(fitted, cam, chunk: int = 8192):
     """Colour and opacity of every pixel of ``cam`` (unit cube) by the geometry stage's renderer."""
     from labelsynth.geometry.training import render_rays_rgb
 
     o, d = cam.rays()
-    o = torch.as_tensor(o, dtype=torch.float32, device=sem.device)
-    d = torch.as_tensor(d, dtype=torch.float32, device=sem.device)
+    o = torch.as_tensor(o, dtype=torch.float32, device=fitted.device)
+    d = torch.as_tensor(d, dtype=torch.float32, device=fitted.device)
     rgb, opa = [], []
-    geo = sem.recipe.geometry
+    geo = fitted.recipe.geometry
     for s in range(0, len(o), chunk):
-        r, a, _ = render_rays_rgb(sem.sdf, sem.grid, o[s:s + chunk], d[s:s + chunk], 1.0, geo.march_steps, train=False)
+        r, a, _ = render_rays_rgb(fitted.sdf, fitted.grid, o[s:s + chunk], d[s:s + chunk], 1.0, geo.march_steps, train=False)
         rgb.append(r)
         opa.append(a)
     return torch.cat(rgb).cpu().numpy(), torch.cat(opa).cpu().numpy()
@@ -91,7 +94,9 @@ def main() -> None:
     from labelsynth.capture import load_capture
     from labelsynth.capture.masks import read_mask
     from labelsynth.device import pick_device
-    from labelsynth.render.field import SemanticField
+    from labelsynth.pipeline import teaching_support
+    from labelsynth.render.renderer import FieldRenderer
+    from labelsynth.rundir import RunFolder
 
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("out", type=Path)
@@ -99,25 +104,29 @@ def main() -> None:
     ap.add_argument("--views", default="", help="comma-separated frame names (default: all)")
     ap.add_argument("--figures", type=Path, default=None)
     ap.add_argument("--device", default="cpu")
+    ap.add_argument("--json", type=Path, default=None, help="where to write the numbers (default OUT/diagnose.json)")
     args = ap.parse_args()
 
     cap = load_capture(args.case / "capture")
     dev = pick_device(args.device)
-    sem = SemanticField.load(args.out / "field.pt", dev)
+    fitted = RunFolder(args.out).load_field(dev)
     cams = cap.unit_cameras()
     truths = [read_mask(args.case / "truth" / f"{n}.png", None, cap.classes) for n in cap.names]
     fg_truth = [(t != 0) & (t != 255) for t in truths]
     annotated = {f.name for f in cap.frames if f.annotation_path is not None}
     hull = visual_hull(cams, fg_truth)
     print(f"visual hull: {hull.mean():.3%} of the cube")
-    scale = sem.recipe.geometry.train_scale
-    caster = sem.render_caster()
+    scale = fitted.recipe.geometry.train_scale
+    view = FieldRenderer(fitted)
+    caster = view.render_caster()
+    support = teaching_support(view, cap, "annotations")
     names = [n for n in args.views.split(",") if n] or cap.names
     rows = []
     if args.figures:
         args.figures.mkdir(parents=True, exist_ok=True)
     print(f"{'view':>10s} {'psnr':>6s} {'holes':>6s} {'absorb':>6s} | {'dice':>5s} {'miss':>6s} {'hit-bg':>6s} "
-          f"{'FP':>6s} {'FPfar':>6s} {'FPdark':>6s} {'FPbrt':>6s} {'walls':>6s}")
+          f"{'FP':>6s} {'FPfar':>6s} {'FPdark':>6s} {'FPbrt':>6s} {'walls':>6s} | {'unseen':>6s} {'hbg-u':>6s} "
+          f"{'FP-u':>6s}")
     for name in names:
         i = cap.names.index(name)
         img = cap.load_image(i)
@@ -125,7 +134,7 @@ def main() -> None:
         valid = truths[i] != 255
         # volume rendering at the training scale
         small = cams[i].scaled(scale)
-        rgb, opa = volume_render(sem, small)
+        rgb, opa = volume_render(fitted, small)
         img_s = cv2.resize(img, (small.width, small.height), interpolation=cv2.INTER_AREA).reshape(-1, 3) / 255.0
         mse = float(((rgb - img_s) ** 2).mean())
         psnr = -10 * np.log10(max(mse, 1e-10))
@@ -133,7 +142,8 @@ def main() -> None:
         holes = float((opa[tf_s] < 0.5).mean()) if tf_s.any() else 0.0
         absorb = float((opa[~tf_s] > 0.5).mean()) if (~tf_s).any() else 0.0
         # the mesh at full resolution
-        hit, pts, _, _ = caster.cast(*cams[i].rays())
+        hit, pts, faces, _ = caster.cast(*cams[i].rays())
+        unseen = support.unseen(hit, pts, faces).reshape(tf.shape)
         hit = hit.reshape(tf.shape)
         pred = read_mask(args.out / "masks" / f"{name}.png", None, cap.classes)
         pf = (pred != 0) & (pred != 255)
@@ -152,11 +162,15 @@ def main() -> None:
         row = {"view": name, "annotated": name in annotated, "psnr": psnr, "holes": holes, "absorbed": absorb,
                "dice": dice, "miss": int(miss.sum()) / n_obj, "hit_labelled_bg": int(hit_bg.sum()) / n_obj,
                "fp": int(fp.sum()) / n_obj, "fp_far_from_hull": int(far.sum()) / n_obj,
-               "fp_dark": int(dark.sum()) / n_obj, "fp_bright": int(bright.sum()) / n_obj, "hits_on_walls": walls}
+               "fp_dark": int(dark.sum()) / n_obj, "fp_bright": int(bright.sum()) / n_obj, "hits_on_walls": walls,
+               "unseen": float(unseen.mean()),
+               "hit_bg_unseen": int((hit_bg & unseen).sum()) / max(int(hit_bg.sum()), 1),
+               "fp_unseen": int((fp & unseen).sum()) / max(int(fp.sum()), 1)}
         rows.append(row)
         print(f"{name:>10s}{'*' if name in annotated else ' '}{psnr:6.2f} {holes:6.3f} {absorb:6.3f} | {dice:5.3f} "
               f"{row['miss']:6.3f} {row['hit_labelled_bg']:6.3f} {row['fp']:6.3f} {row['fp_far_from_hull']:6.3f} "
-              f"{row['fp_dark']:6.3f} {row['fp_bright']:6.3f} {walls:6.3f}", flush=True)
+              f"{row['fp_dark']:6.3f} {row['fp_bright']:6.3f} {walls:6.3f} | {row['unseen']:6.3f} "
+              f"{row['hit_bg_unseen']:6.3f} {row['fp_unseen']:6.3f}", flush=True)
         if args.figures:
             fig = (img * 0.5).astype(np.uint8)
             fig[miss] = (0, 255, 0)
@@ -170,7 +184,7 @@ def main() -> None:
     scored = [r for r in rows if not r["annotated"]] or rows
     mean = {k: float(np.mean([r[k] for r in scored])) for k in keys}
     print("mean (unannotated views): " + ", ".join(f"{k} {v:.3f}" for k, v in mean.items()))
-    (args.out / "diagnose.json").write_text(json.dumps({"views": rows, "mean": mean, "hull_share": float(hull.mean())},
+    (args.json or args.out / "diagnose.json").write_text(json.dumps({"views": rows, "mean": mean, "hull_share": float(hull.mean())},
                                                        indent=1))
 
 
