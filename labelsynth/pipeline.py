@@ -32,6 +32,7 @@ from .progress import console, track
 from .recipe import Recipe
 from .render.field import FittedField
 from .render.renderer import FieldRenderer
+from .render.support import SurfaceSupport
 from .rundir import RunFolder, RunInfo, load_field
 from .semantics.fit import HeadFit, fit_head, leave_one_out_heads, scaled_config
 from .semantics.head import SemanticHead
@@ -265,9 +266,13 @@ def render_outputs(
     labels: LabelMode,
     recipe_name: str,
     progress: bool = True,
-) -> dict[str, np.ndarray]:
-    """masks/*.png and labels.h5 for every frame at its input resolution; returns the masks."""
+) -> tuple[dict[str, np.ndarray], dict[str, float]]:
+    """masks/*.png and labels.h5 for every frame at its input resolution; returns the masks and
+    each frame's share of pixels whose surface no teaching frame saw (their labels.h5
+    confidence capped: ``render.support``)."""
     cams = capture.unit_cameras()
+    support = teaching_support(view, capture, labels)
+    unseen: dict[str, float] = {}
     annotated = [f.annotation_path is not None for f in capture.frames]
     classes = capture.classes
     masks: dict[str, np.ndarray] = {}
@@ -282,11 +287,32 @@ def render_outputs(
     ) as writer:
         for i in track(range(len(capture)), "rendering masks", enabled=progress):
             frame = capture.frames[i]
-            r = view.render(cams[i])
+            r = view.render(cams[i], support=support)
             write_masks_png(run.masks_dir, frame.name, r.mask, classes)
             writer.add(frame.name, capture.load_image(i), r.mask, r.confidence.astype(np.float16), annotated[i])
             masks[frame.name] = r.mask
-    return masks
+            unseen[frame.name] = r.unseen_share
+    return masks, unseen
+
+
+def teaching_support(view: FieldRenderer, capture: Capture, labels: LabelMode | str) -> SurfaceSupport:
+    """What the frames whose masks taught the head (``labelled_frames``) saw of the field's surface."""
+    taught = labelled_frames(capture, labels, view.field.recipe)
+    return view.support([f.camera for f in taught], [f.mask for f in taught])
+
+
+def unseen_shares(view: FieldRenderer, capture: Capture, labels: LabelMode | str, *,
+                  progress: bool = False) -> dict[str, float]:
+    """Each frame's share of pixels whose surface no teaching frame saw (as ``render_outputs``
+    measures it), for a field loaded from disk."""
+    support = teaching_support(view, capture, labels)
+    cams = capture.unit_cameras()
+    caster = view.render_caster()
+    out = {}
+    for i in track(range(len(capture)), "unseen surface", enabled=progress):
+        hit, points, faces, _ = caster.cast(*cams[i].rays())
+        out[capture.frames[i].name] = float(support.unseen(hit, points, faces).mean())
+    return out
 
 
 def expand(
@@ -347,13 +373,13 @@ def expand(
         run.save_field(fit.field)
         view = FieldRenderer(fit.field)
         t0 = time.time()
-        masks = render_outputs(view, capture, run, labels=mode, recipe_name=rec.name, progress=progress)
+        masks, unseen = render_outputs(view, capture, run, labels=mode, recipe_name=rec.name, progress=progress)
         stats["seconds"]["render"] = time.time() - t0
         report_seconds = None
         if opts.report:
             t0 = time.time()
             rep = _report(run, capture, view, masks, mode, baked=fit.baked, seed=opts.seed, progress=progress,
-                          mesh_format=opts.mesh_format.value, mm_per_unit=opts.mm_per_unit)
+                          unseen=unseen, mesh_format=opts.mesh_format.value, mm_per_unit=opts.mm_per_unit)
             stats["seconds"]["report"] = time.time() - t0
             report_seconds = rep["summary"]["phase_seconds"]
         chosen = None if opts.annotated_frames is None else [f.name for f in capture.frames if f.annotation_path is not None]
@@ -375,7 +401,8 @@ def expand(
 
 
 def _report(run: RunFolder, capture: Capture, view: FieldRenderer, masks: dict[str, np.ndarray], mode: LabelMode, *,
-            baked: BakedRays | None, seed: int, progress: bool, **kwargs) -> dict:
+            baked: BakedRays | None, seed: int, progress: bool, unseen: dict[str, float] | None = None,
+            **kwargs) -> dict:
     """build_report with what it needs from the orchestration: the masks that taught, and how
     to get the leave-one-out heads."""
     from .report.build import build_report
@@ -386,8 +413,10 @@ def _report(run: RunFolder, capture: Capture, view: FieldRenderer, masks: dict[s
     def loo_heads(names: list[str]) -> dict[str, SemanticHead]:
         return leave_one_out_heads_of(fitted, capture, mode, names, baked=baked, seed=seed, progress=progress)
 
+    if unseen is None:
+        unseen = unseen_shares(view, capture, mode, progress=progress)
     return build_report(run, capture, view, masks, mode.value, taught=taught, loo_heads=loo_heads,
-                        progress=progress, **kwargs)
+                        unseen=unseen, progress=progress, **kwargs)
 
 
 def rebuild_report(

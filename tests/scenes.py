@@ -93,26 +93,13 @@ def _skin_colour(points: np.ndarray) -> np.ndarray:
     return np.where(inside, patch, skin)
 
 
-def make_patch_capture(root: Path, frames: int = 10, size: int = 40, annotated=(0, 5)) -> tuple[Path, Path]:
-    """A patch on a skin-coloured surface that fills every view, filmed from one side (a phone
-    over a wound): the images' rim is the surface itself. Writes ROOT/capture and ROOT/truth."""
-    capture, truth = Path(root) / "capture", Path(root) / "truth"
-    for sub in (capture / "images", capture / "annotations", truth):
-        sub.mkdir(parents=True, exist_ok=True)
-    slab = trimesh.creation.box(extents=(6.0, 6.0, 0.2))
-    slab.apply_translation((0.0, 0.0, -0.1))  # top face at z = 0
-    f = 1.1 * size
-    entries = []
-    for i in range(frames):
-        el, az = np.radians(55.0 + 25.0 * (i % 2)), 2 * np.pi * i / frames
-        eye = 1.6 * np.array([np.cos(el) * np.cos(az), np.cos(el) * np.sin(az), np.sin(el)])
-        cam = Camera(size, size, f, f, size / 2, size / 2, look_at(eye, np.zeros(3)))
-        o, d = cam.rays()
-        loc, ray, _ = slab.ray.intersects_location(o, d, multiple_hits=False)
-        rgb = np.zeros((len(o), 3))
-        rgb[ray] = _skin_colour(loc)
-        mask = np.zeros(len(o), np.uint8)
-        mask[ray] = (loc[:, 0] ** 2 + loc[:, 1] ** 2 < 0.3**2).astype(np.uint8)
+def _write_views(capture: Path, truth: Path, size: int, views, annotated, second: dict) -> None:
+    """The frames (camera, rgb (size*size, 3) in 0..1, class-id mask (size*size,)) of a square
+    PINHOLE capture: images/, annotations/ for ``annotated``, truth/, transforms.json and a
+    two-class classes.json (background and ``second``)."""
+    entries, f = [], None
+    for i, (cam, rgb, mask) in enumerate(views):
+        f = cam.fx
         name = f"view_{i:02d}"
         img = (rgb.reshape(size, size, 3) * 255).round().astype(np.uint8)
         cv2.imwrite(str(capture / "images" / f"{name}.png"), cv2.cvtColor(img, cv2.COLOR_RGB2BGR))
@@ -124,6 +111,77 @@ def make_patch_capture(root: Path, frames: int = 10, size: int = 40, annotated=(
         "camera_model": "PINHOLE", "fl_x": f, "fl_y": f, "cx": size / 2, "cy": size / 2,
         "w": size, "h": size, "frames": entries}))
     (capture / "classes.json").write_text(json.dumps({"classes": [
-        {"id": 0, "name": "background", "color": [0, 0, 0]},
-        {"id": 1, "name": "wound", "color": [200, 40, 40], "wound_bed": True}]}))
+        {"id": 0, "name": "background", "color": [0, 0, 0]}, {"id": 1, **second}]}))
+
+
+def make_patch_capture(root: Path, frames: int = 10, size: int = 40, annotated=(0, 5)) -> tuple[Path, Path]:
+    """A patch on a skin-coloured surface that fills every view, filmed from one side (a phone
+    over a wound): the images' rim is the surface itself. Writes ROOT/capture and ROOT/truth."""
+    capture, truth = Path(root) / "capture", Path(root) / "truth"
+    for sub in (capture / "images", capture / "annotations", truth):
+        sub.mkdir(parents=True, exist_ok=True)
+    slab = trimesh.creation.box(extents=(6.0, 6.0, 0.2))
+    slab.apply_translation((0.0, 0.0, -0.1))  # top face at z = 0
+    f = 1.1 * size
+    views = []
+    for i in range(frames):
+        el, az = np.radians(55.0 + 25.0 * (i % 2)), 2 * np.pi * i / frames
+        eye = 1.6 * np.array([np.cos(el) * np.cos(az), np.cos(el) * np.sin(az), np.sin(el)])
+        cam = Camera(size, size, f, f, size / 2, size / 2, look_at(eye, np.zeros(3)))
+        o, d = cam.rays()
+        loc, ray, _ = slab.ray.intersects_location(o, d, multiple_hits=False)
+        rgb = np.zeros((len(o), 3))
+        rgb[ray] = _skin_colour(loc)
+        mask = np.zeros(len(o), np.uint8)
+        mask[ray] = (loc[:, 0] ** 2 + loc[:, 1] ** 2 < 0.3**2).astype(np.uint8)
+        views.append((cam, rgb, mask))
+    _write_views(capture, truth, size, views, annotated, {"name": "wound", "color": [200, 40, 40], "wound_bed": True})
+    return capture, truth
+
+
+def table_scene(behind: float = 1.2) -> tuple[trimesh.Trimesh, trimesh.Trimesh]:
+    """(object, table): a box with a ball on it, standing on a table top at z = 0 that reaches
+    far towards +x (where the cameras are) and ends ``behind`` beyond the object's centre."""
+    box = trimesh.creation.box(extents=(0.7, 0.5, 0.4))
+    box.apply_translation((0.0, 0.0, 0.2))
+    ball = trimesh.creation.icosphere(subdivisions=3, radius=0.25)
+    ball.apply_translation((0.05, 0.0, 0.55))
+    table = trimesh.creation.box(extents=(5.0 + behind, 8.0, 0.2))
+    table.apply_translation((0.5 * (5.0 - behind), 0.0, -0.1))  # from x = -behind to 5
+    return trimesh.util.concatenate([box, ball]), table
+
+
+def make_table_capture(root: Path, frames: int = 12, size: int = 48, annotated=(0, 4, 8),
+                       table: float = 0.97, backdrop: float = 0.03, white_above: float = 0.6,
+                       behind: float = 1.2) -> tuple[Path, Path]:
+    """Real photographs' hard parts in a tiny capture (issue 31): an object on a white,
+    textureless table, filmed from above on one side as DTU films its objects, with a dark
+    backdrop beyond the table's far edge; the object's top (above ``white_above``) is
+    saturated white, the colour of the table seen through it, so nothing but its outline
+    tells where it is. Writes ROOT/capture and ROOT/truth (object 1, table and backdrop 0).
+    """
+    capture, truth = Path(root) / "capture", Path(root) / "truth"
+    for sub in (capture / "images", capture / "annotations", truth):
+        sub.mkdir(parents=True, exist_ok=True)
+    obj, table_top = table_scene(behind)
+    scene = trimesh.util.concatenate([obj, table_top])
+    n_obj = len(obj.faces)
+    f = 1.1 * size
+    views = []
+    for i in range(frames):
+        el = np.radians(35.0 + 20.0 * (i % 2))
+        az = np.radians(-60.0 + 120.0 * i / max(frames - 1, 1))  # an arc on the table's near side
+        eye = 2.6 * np.array([np.cos(el) * np.cos(az), np.cos(el) * np.sin(az), np.sin(el)])
+        cam = Camera(size, size, f, f, size / 2, size / 2, look_at(eye, np.array([0.0, 0.0, 0.3])))
+        o, d = cam.rays()
+        loc, ray, tri = scene.ray.intersects_location(o, d, multiple_hits=False)
+        rgb = np.full((len(o), 3), backdrop)
+        on_obj = tri < n_obj
+        colour = np.where(on_obj[:, None], _colour(loc), table)
+        colour[on_obj & (loc[:, 2] > white_above)] = 1.0
+        rgb[ray] = colour
+        mask = np.zeros(len(o), np.uint8)
+        mask[ray[on_obj]] = 1
+        views.append((cam, rgb, mask))
+    _write_views(capture, truth, size, views, annotated, {"name": "object", "color": [255, 80, 40], "wound_bed": True})
     return capture, truth

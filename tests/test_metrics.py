@@ -133,3 +133,23 @@ def test_one_metrics_module_for_report_train_and_evaluation():
             "print(sorted(m for m in sys.modules if m.startswith('labelsynth.evaluation')))")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout
     assert out.strip() == "[]"
+
+
+def test_errors_far_from_edge_tells_a_wrong_region_from_a_wide_boundary():
+    from labelsynth.metrics import errors_far_from_edge
+
+    truth = np.zeros((60, 60), bool)
+    truth[10:30, 10:30] = True
+    wide = truth.copy()
+    wide[9, 10:30] = True  # one row too many: at the edge
+    assert errors_far_from_edge(wide, truth) == (20, 0)
+    blob = truth.copy()
+    blob[45:50, 45:50] = True  # a region labelled wrong, 15+ px from the truth
+    assert errors_far_from_edge(blob, truth) == (25, 25)
+    hole = truth.copy()
+    hole[18:22, 18:22] = False  # a hole in the middle: 8+ px inside the edge
+    assert errors_far_from_edge(hole, truth) == (16, 16)
+    valid = np.ones_like(truth)
+    valid[45:50, 45:50] = False  # errors where nothing counts are not errors
+    assert errors_far_from_edge(blob, truth, valid) == (0, 0)
+    assert errors_far_from_edge(blob, np.zeros_like(truth)) == (int(blob.sum()), int(blob.sum()))  # no edge

@@ -9,7 +9,7 @@ dataset        shape         dtype       notes
 =============  ============  ==========  =====================================================
 images         (N,H,W,3)     uint8       RGB
 masks          (N,H,W)       uint8       class ids, 255 = ignore (also the fill value)
-confidence     (N,H,W)       float16     max class probability in [0, 1]
+confidence     (N,H,W)       float16     probability of the label written, in [0, 1] (capped: render.support)
 annotated      (N,)          bool        frame had an expert annotation
 frame_names    (N,)          utf-8 str   image file names as in the capture
 =============  ============  ==========  =====================================================

@@ -20,6 +20,7 @@ from ..errors import LabelsynthError
 from ..semantics.head import SemanticHead, decide_labels
 from .config import RenderConfig
 from .field import FittedField
+from .support import SurfaceSupport
 from .surface import SurfaceCaster, extract_mesh
 
 
@@ -32,6 +33,12 @@ class FrameRender:
     probabilities: np.ndarray | None = None  # (H, W, C) float16 when asked for
     hit: np.ndarray | None = None  # (H, W) bool: the ray met the surface
     points: np.ndarray | None = None  # (H, W, 3) unit-cube hit points (valid where hit)
+    unseen: np.ndarray | None = None  # (H, W) bool: hit surface no teaching frame saw (render with support=)
+
+    @property
+    def unseen_share(self) -> float | None:
+        """Share of the frame's pixels whose surface no teaching frame saw (None: not asked)."""
+        return None if self.unseen is None else float(self.unseen.mean())
 
 
 class FieldRenderer:
@@ -140,11 +147,18 @@ class FieldRenderer:
             return torch.zeros(0, self.field.classes.num_classes, device=device)
         return torch.cat(out)
 
+    def support(self, cameras: list[Camera], masks: list[np.ndarray]) -> SurfaceSupport:
+        """What the frames that taught the head (unit-cube cameras, their masks) saw of this
+        field's surface: pass it to ``render(..., support=)``."""
+        return SurfaceSupport(self.render_caster(), cameras, masks, self.config)
+
     # --- frames ---------------------------------------------------------------------------
     def render(self, camera_unit: Camera, head: SemanticHead | None = None, *, keep_probabilities: bool = False,
-               keep_points: bool = False) -> FrameRender:
+               keep_points: bool = False, support: SurfaceSupport | None = None) -> FrameRender:
         """Mask and confidence for every pixel of a camera given in unit-cube coordinates, by
-        ``head`` (default: the field's)."""
+        ``head`` (default: the field's). With ``support`` (``self.support(...)``), pixels whose
+        surface no teaching frame saw are marked (``FrameRender.unseen``) and their confidence
+        capped at ``render.unseen_confidence``."""
         classes, cfg = self.field.classes, self.config
         head = self._head(head)
         h, w = camera_unit.height, camera_unit.width
@@ -166,10 +180,15 @@ class FieldRenderer:
         index = decide_labels(probs, classes, cfg.decision)
         mask = classes.index_to_id_lut()[index].reshape(h, w)
         conf = np.take_along_axis(probs, index[:, None], -1)[:, 0].reshape(h, w)  # of the label written
+        unseen = None
+        if support is not None:
+            unseen = support.unseen(hit, points, faces).reshape(h, w)
+            conf = np.where(unseen, np.minimum(conf, cfg.unseen_confidence), conf)
         return FrameRender(
             mask=mask,
             confidence=conf,
             probabilities=probs.reshape(h, w, c).astype(np.float16) if keep_probabilities else None,
             hit=hit.reshape(h, w),
             points=points.reshape(h, w, 3) if keep_points else None,
+            unseen=unseen,
         )

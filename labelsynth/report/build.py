@@ -172,6 +172,7 @@ def build_report(
     mesh_format: str | None = "ply",
     mm_per_unit: float | None = None,
     loo: bool = True,
+    unseen: dict[str, float] | None = None,
 ) -> dict:
     """Write OUT/report.json, OUT/report.html and OUT/mesh.ply (+ .glb); return the report.
 
@@ -182,7 +183,8 @@ def build_report(
     caller supplies it, so the report knows nothing of how a field is fitted); each left-out
     frame is rendered with its own head. ``mesh_format=None`` skips the mesh (and its areas).
     ``loo=False`` skips the leave-one-view-out refits (then annotated frames are judged by
-    agreement only).
+    agreement only). ``unseen``: each frame's share of pixels whose surface no teaching frame
+    saw (``pipeline.render_outputs``), written per frame and summarised.
     """
     t0 = time.time()
     run = out if isinstance(out, RunFolder) else RunFolder(out)
@@ -221,6 +223,13 @@ def build_report(
             mesh_info = export_labelled_mesh(view, run.path, mesh_format=mesh_format, mm_per_unit=mm_per_unit,
                                              stem=MESH_STEM).to_dict()
     summary = _summary(capture, mode, frames, ann, pred, pairwise, mesh_info)
+    if unseen is not None:
+        for f in frames:
+            f["unseen_share"] = unseen.get(f["name"])
+        shares = [v for v in unseen.values() if v is not None]
+        summary["median_unseen_share"] = float(np.median(shares)) if shares else None
+        summary["max_unseen_share"] = float(max(shares)) if shares else None
+        summary["unseen_confidence"] = view.config.unseen_confidence
     for f in frames:
         f.pop("_present")
     report = {"frames": frames, "views": views, "pairwise": pairwise, "summary": summary}

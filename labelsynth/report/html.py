@@ -39,6 +39,10 @@ def _fmt(v) -> str:
     return html.escape(str(v))
 
 
+def _pct(v: float | None) -> str:
+    return "–" if v is None else f"{v:.1%}"
+
+
 def _table(header: Sequence[str], rows: Sequence[Sequence], left: int = 1, row_classes: Sequence[str] | None = None) -> str:
     head = "".join(f'<th class="l">{html.escape(h)}</th>' if i < left else f"<th>{html.escape(h)}</th>" for i, h in enumerate(header))
     body = []
@@ -78,17 +82,25 @@ def render_html(report: Mapping, figures: Mapping[str, bytes], strips: Mapping[s
 
     # per frame table
     parts.append("<h2>Frames</h2>")
-    header = ["frame", "sources", "agreement (wound bed)", "LOO Dice (wound bed)", "flagged", "reason"]
+    header = ["frame", "sources", "agreement (wound bed)", "LOO Dice (wound bed)", "unseen surface", "flagged",
+              "reason"]
     rows, classes_ = [], []
     for f in frames:
+        unseen = f.get("unseen_share")
         rows.append([
             f["name"], ", ".join(f["sources"]) or "–",
             f["agreement"].get(WOUND_BED) if f["agreement"] else None,
             f["loo_dice"].get(WOUND_BED) if f.get("loo_dice") else None,
+            _pct(unseen),
             "yes" if f["flagged"] else "", f["reason"],
         ])
         classes_.append("flag" if f["flagged"] else "")
     parts.append(_table(header, rows, left=2, row_classes=classes_))
+    if s.get("unseen_confidence") is not None:
+        parts.append('<p class="muted">Unseen surface: the share of the frame\'s pixels whose surface no frame that '
+                     'taught the field saw; their label is the field\'s guess from nearby surface, and their '
+                     f'labels.h5 confidence is at most {_fmt(s.get("unseen_confidence"))}. Median over the frames '
+                     f'{_pct(s.get("median_unseen_share"))}, largest {_pct(s.get("max_unseen_share"))}.</p>')
 
     for key, title in (("agreement", "Agreement per frame"), ("class_area", "Class area over frames"),
                        ("pairwise", "Cross-view consistency")):

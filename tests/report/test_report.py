@@ -29,6 +29,7 @@ from labelsynth.export import write_masks_png
 from labelsynth.pipeline import labelled_frames
 from labelsynth.pipeline import rebuild_report
 from labelsynth.recipe import Recipe
+from labelsynth.render.support import SurfaceSupport
 from labelsynth.render.surface import SurfaceCaster
 from labelsynth.report.build import build_report
 from labelsynth.report.consistency import Check, flag_frames, pairwise_consistency
@@ -100,6 +101,12 @@ class PlaneField:
 
     def caster(self):
         return self._caster
+
+    def render_caster(self):
+        return self._caster
+
+    def support(self, cameras, masks) -> SurfaceSupport:
+        return SurfaceSupport(self._caster, cameras, masks, self.config)
 
     def _texel(self, pts: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         ij = np.clip(((pts[:, :2] + 1) / 2 * self.res).astype(int), 0, self.res - 1)
@@ -327,6 +334,8 @@ def test_rebuild_report_and_cli(tmp_path, monkeypatch):
         assert (out / f).is_file()
     assert (out / "mesh.glb").is_file()  # kept the previous run's format
     assert again["summary"]["mesh"]["areas"]["mm_per_unit"] == 2.0
+    # the rebuild also gives each frame's share of surface no teaching frame saw (render.support)
+    assert all(0.0 <= f.pop("unseen_share") <= 1.0 for f in again["frames"])
     assert again["frames"] == json.loads(json.dumps(first["frames"]))
 
     from typer.testing import CliRunner
