@@ -198,6 +198,23 @@ def report(
     typer.echo(f"{len(rep['frames'])} frames, {len(flagged)} flagged" + (f": {', '.join(flagged)}" if flagged else ""))
 
 
+@app.command("export")
+@friendly_errors
+def export_(
+    out: Path = typer.Argument(..., help="Output folder of labelsynth expand (labels.h5, report.json)."),
+    fmt: str = typer.Option(..., "--format", help="cvat (a zip CVAT imports as 'Segmentation mask 1.1') | voc | coco | cityscapes."),
+    to: Path = typer.Option(..., "--to", help="Where to write: a .zip for cvat, a folder for the others."),
+    frames: str = typer.Option("all", "--frames", help="all | flagged (the report's flagged frames) | unannotated."),
+    min_confidence: Optional[float] = typer.Option(None, "--min-confidence", help="Pixels less confident than this (0..1) become ignore (VOC's void, COCO: left out)."),
+    force: bool = typer.Option(False, help="Replace PATH if it exists."),
+) -> None:
+    """Write OUT's masks for CVAT, Pascal VOC, COCO or Cityscapes-style trainers."""
+    from .export.formats import export_run
+
+    result = export_run(out, to, fmt=fmt, frames=frames, min_confidence=min_confidence, force=force)
+    typer.echo(result.summary())
+
+
 @app.command()
 @friendly_errors
 def demo(
