@@ -217,6 +217,23 @@ def export_(
 
 @app.command()
 @friendly_errors
+def relabel(
+    out: Path = typer.Argument(..., help="Output folder of labelsynth expand (field.pt, run.json, masks/)."),
+    capture: Optional[Path] = typer.Option(None, help="The capture folder, if it moved since expand (default: the one in run.json)."),
+    labels: Optional[str] = typer.Option(None, help="annotations | predictions | both (default: as the run)."),
+    report: bool = typer.Option(True, "--report/--no-report", help="Rewrite the consistency report and the labelled mesh (--no-report: masks, labels.h5, field.pt, run.json only)."),
+    device: str = typer.Option("auto", help="auto | cpu | cuda"),
+    keep_previous: bool = typer.Option(False, "--keep-previous", help="Keep the replaced OUT as OUT.previous (default: removed once the new OUT is whole)."),
+) -> None:
+    """Re-train only the labels on OUT's frozen geometry after masks changed; replace OUT atomically."""
+    from .pipeline import relabel as run_relabel
+
+    result = run_relabel(out, capture=capture, labels=labels, report=report, device=device, keep_previous=keep_previous)
+    typer.echo(result.summary())
+
+
+@app.command()
+@friendly_errors
 def demo(
     out: Path = typer.Option(Path("labelsynth-demo"), help="Folder for the synthetic capture and the results."),
     frames: int = typer.Option(12, min=4, help="Frames of the synthetic capture."),

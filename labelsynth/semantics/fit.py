@@ -73,6 +73,7 @@ def fit_head(
     if exclude and len(taught) == 0:
         raise LabelsynthError("no labelled pixels left after leaving out " + ", ".join(sorted(exclude)))
     cfg = scaled_config(cfg, steps_fraction)
+    torch.manual_seed(seed)  # the head's initial weights depend on the seed only, not on what ran before
     head = make_semantic_head(sdf, classes, cfg)
     stats = train_semantic(head, taught, classes, cfg, seed=seed, progress=progress)
     return HeadFit(head, stats, baked)
@@ -107,6 +108,7 @@ def leave_one_out_heads(
                                     seed=seed, progress=progress)
     for name in names:
         if name not in heads:
+            torch.manual_seed(seed)  # as fit_head: a report rebuilt from field.pt gets the same heads
             head = make_semantic_head(sdf, classes, cfg)
             train_semantic(head, baked, classes, cfg, seed=seed, progress=False)
             heads[name] = head
