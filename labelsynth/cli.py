@@ -225,6 +225,40 @@ def report(
     typer.echo(f"{len(rep['frames'])} frames, {len(flagged)} flagged" + (f": {', '.join(flagged)}" if flagged else ""))
 
 
+@app.command("export")
+@friendly_errors
+def export_(
+    out: Path = typer.Argument(..., help="Output folder of labelsynth expand (labels.h5, report.json)."),
+    fmt: str = typer.Option(..., "--format", help="cvat (a zip CVAT imports as 'Segmentation mask 1.1') | voc | coco | cityscapes."),
+    to: Path = typer.Option(..., "--to", help="Where to write: a .zip for cvat, a folder for the others."),
+    frames: str = typer.Option("all", "--frames", help="all | flagged (the report's flagged frames) | unannotated."),
+    min_confidence: Optional[float] = typer.Option(None, "--min-confidence", help="Pixels less confident than this (0..1) become ignore (VOC's void, COCO: left out)."),
+    force: bool = typer.Option(False, help="Replace PATH if it exists."),
+) -> None:
+    """Write OUT's masks for CVAT, Pascal VOC, COCO or Cityscapes-style trainers."""
+    from .export.formats import export_run
+
+    result = export_run(out, to, fmt=fmt, frames=frames, min_confidence=min_confidence, force=force)
+    typer.echo(result.summary())
+
+
+@app.command()
+@friendly_errors
+def relabel(
+    out: Path = typer.Argument(..., help="Output folder of labelsynth expand (field.pt, run.json, masks/)."),
+    capture: Optional[Path] = typer.Option(None, help="The capture folder, if it moved since expand (default: the one in run.json)."),
+    labels: Optional[str] = typer.Option(None, help="annotations | predictions | both (default: as the run)."),
+    report: bool = typer.Option(True, "--report/--no-report", help="Rewrite the consistency report and the labelled mesh (--no-report: masks, labels.h5, field.pt, run.json only)."),
+    device: str = typer.Option("auto", help="auto | cpu | cuda"),
+    keep_previous: bool = typer.Option(False, "--keep-previous", help="Keep the replaced OUT as OUT.previous (default: removed once the new OUT is whole)."),
+) -> None:
+    """Re-train only the labels on OUT's frozen geometry after masks changed; replace OUT atomically."""
+    from .pipeline import relabel as run_relabel
+
+    result = run_relabel(out, capture=capture, labels=labels, report=report, device=device, keep_previous=keep_previous)
+    typer.echo(result.summary())
+
+
 @app.command()
 @friendly_errors
 def demo(

@@ -1,9 +1,12 @@
 """Outputs that are either complete or absent: folders built in ``X.partial``, renamed at the end.
 
 Why: a run that is interrupted (Ctrl-C, a crash, a full disk) must never leave an ``X`` that
-looks finished. Every command that writes a folder (``expand``, ``synth``, ``segment``)
-builds it under ``X.partial`` beside ``X`` with ``building``; single files (``labels.h5``,
-``transforms.json``) are written to ``partial_path(X)`` and renamed the same way.
+looks finished. Every command that writes a folder (``expand``, ``synth``, ``segment``,
+``relabel``, ``export``) builds it under ``X.partial`` beside ``X`` with ``building``; single
+files (``labels.h5``, ``transforms.json``) are written to ``partial_path(X)`` and renamed the
+same way. A folder that replaces an existing ``X`` (``expand --force``, ``relabel``) is swapped
+in by two renames: ``X`` -> ``X.previous``, ``X.partial`` -> ``X``; ``X.previous`` is then
+removed (or kept, when asked), so at every moment either the old ``X`` or the new one is whole.
 
 A ``X.partial`` left by a killed run is removed when the next run starts.
 """
@@ -19,12 +22,19 @@ from pathlib import Path
 from .errors import LabelsynthError
 
 PARTIAL_SUFFIX = ".partial"
+PREVIOUS_SUFFIX = ".previous"
 
 
 def partial_path(path: str | Path) -> Path:
     """Where ``path`` is assembled before it is complete: ``path`` + ``.partial``, beside it."""
     path = Path(path)
     return path.with_name(path.name + PARTIAL_SUFFIX)
+
+
+def previous_path(path: str | Path) -> Path:
+    """Where a replaced folder ``path`` waits while its successor is renamed in: ``path`` + ``.previous``."""
+    path = Path(path)
+    return path.with_name(path.name + PREVIOUS_SUFFIX)
 
 
 def check_out(out: str | Path, force: bool = False) -> None:
@@ -40,13 +50,15 @@ def check_out(out: str | Path, force: bool = False) -> None:
 
 
 @contextmanager
-def building(out: str | Path, *, force: bool = False, merge: bool = False) -> Iterator[Path]:
+def building(out: str | Path, *, force: bool = False, merge: bool = False, keep_previous: bool = False) -> Iterator[Path]:
     """Yield ``OUT.partial`` (fresh and empty) to write into; on leaving the block normally it
     becomes ``OUT``, on an exception (KeyboardInterrupt included) it is removed and ``OUT`` is
     left as it was.
 
-    ``merge=False`` (``expand``, ``synth``): ``OUT`` must be empty or absent unless ``force``,
-    and is replaced as a whole. ``merge=True`` (``segment``, whose ``OUT`` may be a capture's
+    ``merge=False`` (``expand``, ``synth``, ``relabel``): ``OUT`` must be empty or absent unless
+    ``force``, and is replaced as a whole: renamed to ``OUT.previous`` (an older one there is
+    removed first), ``OUT.partial`` renamed to ``OUT``, then ``OUT.previous`` removed unless
+    ``keep_previous``. ``merge=True`` (``segment``, whose ``OUT`` may be a capture's
     ``predictions/``): the finished files are moved into ``OUT`` one by one (each move is
     atomic), replacing files of the same name and keeping the others.
     """
@@ -73,9 +85,19 @@ def building(out: str | Path, *, force: bool = False, merge: bool = False) -> It
                     shutil.rmtree(target)
                 os.replace(item, target)
             partial.rmdir()
+        elif out.exists():
+            previous = previous_path(out)
+            if previous.exists():
+                shutil.rmtree(previous)
+            os.replace(out, previous)
+            try:
+                os.replace(partial, out)
+            except BaseException:
+                os.replace(previous, out)
+                raise
+            if not keep_previous:
+                shutil.rmtree(previous, ignore_errors=True)
         else:
-            if out.exists():
-                shutil.rmtree(out)
             os.replace(partial, out)
     except BaseException:
         shutil.rmtree(partial, ignore_errors=True)

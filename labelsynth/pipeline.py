@@ -27,13 +27,13 @@ from .geometry.fingerprint import GeometryFingerprint, require_unchanged
 from .geometry.sdf import SDFField
 from .geometry.training import RayBank, train_geometry
 from .options import DeviceChoice, ExpandOptions, LabelMode, MeshFormat, positive_number
-from .outdir import PARTIAL_SUFFIX, building, check_out, partial_path
+from .outdir import PARTIAL_SUFFIX, building, check_out, partial_path, previous_path
 from .progress import console, track
 from .recipe import Recipe
 from .render.field import FittedField
 from .render.renderer import FieldRenderer
 from .render.support import SurfaceSupport
-from .rundir import RunFolder, RunInfo, load_field
+from .rundir import RunFolder, RunInfo, changed_label_inputs, geometry_inputs, label_inputs, load_field
 from .semantics.fit import HeadFit, fit_head, leave_one_out_heads, scaled_config
 from .semantics.head import SemanticHead
 from .semantics.training import BakedRays, LabelledFrame, bake_semantic_rays
@@ -365,28 +365,23 @@ def expand(
             if source is not None:
                 console.print(f"[bold]labelsynth[/] geometry from {source} (fitted on these images and cameras, "
                               f"with this geometry recipe and seed: stage 1 skipped)")
+        t0 = time.time()
+        inputs = {"geometry_inputs": geometry_inputs(capture), "label_inputs": label_inputs(capture)}
+        fingerprints = time.time() - t0
         fit = fit_field(capture, rec, mode, dev, seed=opts.seed, progress=progress, geometry=reused)
         stats = fit.stats
         if source is not None:
             stats["seconds"]["geometry"] = reuse_seconds  # loading and checking it
-        stats["seconds"] = {"check": check.seconds, **stats["seconds"]}
-        run.save_field(fit.field)
-        view = FieldRenderer(fit.field)
-        t0 = time.time()
-        masks, unseen = render_outputs(view, capture, run, labels=mode, recipe_name=rec.name, progress=progress)
-        stats["seconds"]["render"] = time.time() - t0
-        report_seconds = None
-        if opts.report:
-            t0 = time.time()
-            rep = _report(run, capture, view, masks, mode, baked=fit.baked, seed=opts.seed, progress=progress,
-                          unseen=unseen, mesh_format=opts.mesh_format.value, mm_per_unit=opts.mm_per_unit)
-            stats["seconds"]["report"] = time.time() - t0
-            report_seconds = rep["summary"]["phase_seconds"]
+        stats["seconds"] = {"check": check.seconds + fingerprints, **stats["seconds"]}
+        report_seconds = _write_outputs(run, capture, fit.field, fit.baked, mode, seconds=stats["seconds"],
+                                        recipe_name=rec.name, seed=opts.seed, report=opts.report,
+                                        mesh_format=opts.mesh_format.value, mm_per_unit=opts.mm_per_unit,
+                                        progress=progress)
         chosen = None if opts.annotated_frames is None else [f.name for f in capture.frames if f.annotation_path is not None]
         run.write_run(RunInfo(
             capture=str(Path(capture_dir).resolve()), labels=mode.value, annotated_frames=chosen, recipe=rec.to_dict(),
             device=str(dev), seed=opts.seed, seconds=stats["seconds"], geometry=stats["geometry"],
-            semantic=stats["semantic"], report_seconds=report_seconds,
+            semantic=stats["semantic"], report_seconds=report_seconds, **inputs,
             geometry_from=None if source is None else str(source.resolve()),
         ))
     return ExpandResult(
@@ -398,6 +393,32 @@ def expand(
         geometry=stats["geometry"],
         semantic=stats["semantic"],
     )
+
+
+def _write_outputs(run: RunFolder, capture: Capture, fitted: FittedField, baked: BakedRays | None, mode: LabelMode, *,
+                   seconds: dict[str, float], recipe_name: str, seed: int, report: bool, mesh_format: str,
+                   mm_per_unit: float | None, progress: bool, before: dict[str, np.ndarray] | None = None,
+                   relabel: dict | None = None) -> dict[str, float] | None:
+    """What expand and relabel write after the semantic stage: field.pt, masks/ and labels.h5,
+    then (``report``) the report and the mesh. Adds ``render`` and ``report`` to ``seconds``;
+    returns the report's own step seconds (None without a report). ``before``: the masks of the
+    OUT being replaced, so ``relabel["pixels_changed"]`` (per frame, pixels whose class moved)
+    is filled in here and shown by the report."""
+    run.save_field(fitted)
+    view = FieldRenderer(fitted)
+    t0 = time.time()
+    masks, unseen = render_outputs(view, capture, run, labels=mode, recipe_name=recipe_name, progress=progress)
+    seconds["render"] = time.time() - t0
+    if before is not None and relabel is not None:
+        relabel["pixels_changed"] = {n: int(np.count_nonzero(masks[n] != before[n])) if n in before
+                                     and before[n].shape == masks[n].shape else int(masks[n].size) for n in masks}
+    if not report:
+        return None
+    t0 = time.time()
+    rep = _report(run, capture, view, masks, mode, baked=baked, seed=seed, progress=progress, mesh_format=mesh_format,
+                  mm_per_unit=mm_per_unit, relabel=relabel, unseen=unseen)
+    seconds["report"] = time.time() - t0
+    return rep["summary"]["phase_seconds"]
 
 
 def _report(run: RunFolder, capture: Capture, view: FieldRenderer, masks: dict[str, np.ndarray], mode: LabelMode, *,
@@ -419,6 +440,22 @@ def _report(run: RunFolder, capture: Capture, view: FieldRenderer, masks: dict[s
                         unseen=unseen, progress=progress, **kwargs)
 
 
+def _report_choices(run: RunFolder, mesh_format: str | None, mm_per_unit: float | None) -> tuple[str, float | None]:
+    """The mesh format and mm-per-unit of a new report: as given (checked), else as the OUT's
+    previous report chose them."""
+    if mesh_format is not None:
+        mesh_format = MeshFormat.parse(mesh_format, "--mesh-format").value
+    if mm_per_unit is not None:
+        mm_per_unit = positive_number(mm_per_unit, "--mm-per-unit")
+    prev_mesh = run.read_report_summary().get("mesh") or {}
+    if mesh_format is None:
+        had_glb = run.mesh_path("glb").name in (prev_mesh.get("files") or []) or run.mesh_path("glb").exists()
+        mesh_format = "glb" if had_glb else "ply"
+    if mm_per_unit is None:
+        mm_per_unit = (prev_mesh.get("areas") or {}).get("mm_per_unit")
+    return mesh_format, mm_per_unit
+
+
 def rebuild_report(
     out_dir: str | Path,
     *,
@@ -432,29 +469,120 @@ def rebuild_report(
 
     Without ``mesh_format`` / ``mm_per_unit`` the previous report's choices are kept. The
     leave-one-out heads are trained as expand trains them (the labelled rays baked again with
-    the run's seed), so they match the first report's.
+    the run's seed), so they match the first report's. A relabelled OUT keeps showing what the
+    relabel changed (run.json's ``relabel``).
     """
     dev = pick_device(DeviceChoice.parse(device, "--device").value)
-    if mesh_format is not None:
-        mesh_format = MeshFormat.parse(mesh_format, "--mesh-format").value
-    if mm_per_unit is not None:
-        mm_per_unit = positive_number(mm_per_unit, "--mm-per-unit")
     run = RunFolder(out_dir)
+    mesh_format, mm_per_unit = _report_choices(run, mesh_format, mm_per_unit)
     info, capture = run.open_capture()  # with the run's choice of annotated frames
-    prev_mesh = run.read_report_summary().get("mesh") or {}
-    if mesh_format is None:
-        had_glb = run.mesh_path("glb").name in (prev_mesh.get("files") or []) or run.mesh_path("glb").exists()
-        mesh_format = "glb" if had_glb else "ply"
-    if mm_per_unit is None:
-        mm_per_unit = (prev_mesh.get("areas") or {}).get("mm_per_unit")
     fitted = run.load_field(dev)
-    # The report reads every mask and, for flagged frames, images: check them all before the
-    # leave-one-out refits, and that the capture's classes are still the field's.
+    # The report reads every mask and every image: check them all before the leave-one-out
+    # refits, and that the capture's classes are still the field's.
     check_capture(capture, labels="both", class_tables={str(run.field_path): fitted.classes}).raise_if_problems()
     run.check_fits(fitted, capture)
     masks = run.read_masks(capture.names)
     return _report(run, capture, FieldRenderer(fitted), masks, LabelMode.parse(info.labels, "labels"), baked=None,
-                   seed=info.seed, progress=progress, mesh_format=mesh_format, mm_per_unit=mm_per_unit, loo=loo)
+                   seed=info.seed, progress=progress, mesh_format=mesh_format, mm_per_unit=mm_per_unit, loo=loo,
+                   relabel=info.relabel)
+
+
+@dataclass
+class RelabelResult:
+    """What ``relabel`` did to OUT."""
+
+    out: Path
+    frames: list[str]
+    labels: LabelMode
+    masks_changed: list[str]
+    """``kind/frame`` of the input masks that changed since the previous run."""
+    pixels_changed: dict[str, int]
+    """Per frame, pixels whose class differs from the previous OUT's mask."""
+    seconds: dict[str, float] = field(default_factory=dict)
+    previous: Path | None = None
+    """Where the replaced OUT was kept (``keep_previous``), else None (removed)."""
+
+    def summary(self) -> str:
+        moved = {n: p for n, p in self.pixels_changed.items() if p}
+        total = sum(self.seconds.values())
+        lines = [
+            f"relabelled {self.out} (labels={self.labels}): {len(self.masks_changed)} input mask(s) changed"
+            + (f" ({', '.join(self.masks_changed[:6])}{', ...' if len(self.masks_changed) > 6 else ''})"
+               if self.masks_changed else ""),
+            f"{len(moved)} of {len(self.frames)} frames changed class somewhere, "
+            f"{sum(moved.values())} pixels in all" + (f" (most: {max(moved, key=moved.get)}, {max(moved.values())})"
+                                                     if moved else ""),
+            f"{total:.0f} s (" + ", ".join(f"{k} {v:.0f} s" for k, v in self.seconds.items()) + ")"
+            + (f"; the previous OUT is kept in {self.previous}" if self.previous else ""),
+        ]
+        return "\n".join(lines)
+
+
+def relabel(
+    out: str | Path,
+    *,
+    capture: str | Path | None = None,
+    labels: LabelMode | str | None = None,
+    report: bool = True,
+    device: str = "auto",
+    keep_previous: bool = False,
+    mesh_format: str | None = None,
+    mm_per_unit: float | None = None,
+    progress: bool = True,
+) -> RelabelResult:
+    """Train the semantic stage again on OUT's frozen geometry from the capture's current masks,
+    render, report, and replace OUT with the result (``labelsynth relabel``).
+
+    The geometry in OUT/field.pt is reused as it is, so the capture's images and cameras must be
+    those it was fitted on (run.json's ``geometry_inputs``; anything else is a one-line
+    ``GeometryInputsChanged``). ``capture``: the capture folder when it moved (default: the one
+    run.json names). ``labels``: which masks teach (default: the run's). The head is trained with
+    the run's seed and recipe, so a relabel of an unchanged capture writes the masks the expand
+    wrote. The new OUT is built in OUT.partial and swapped in when whole (``outdir.building``): the
+    old OUT stays whole until then, and ``keep_previous`` keeps it as OUT.previous afterwards.
+    run.json records which input masks changed (``masks_changed``) and, per frame, how many pixels
+    changed class (``pixels_changed``), and the report shows both.
+    """
+    choice = None if labels is None else LabelMode.parse(labels, "--labels")
+    dev_choice = DeviceChoice.parse(device, "--device")
+    run = RunFolder(out)
+    if report:
+        mesh_format, mm_per_unit = _report_choices(run, mesh_format, mm_per_unit)
+    t0 = time.time()
+    info, cap = run.open_capture(capture)  # with the run's choice of annotated frames
+    mode = resolve_label_mode(cap, choice if choice is not None else info.labels)
+    dev = pick_device(dev_choice.value)
+    run.check_geometry_inputs(info, cap)
+    fitted = run.load_field(dev)
+    check = check_capture(cap, labels="both" if report else mode.value,
+                          class_tables={str(run.field_path): fitted.classes})
+    check.raise_if_problems()
+    run.check_fits(fitted, cap, need_head=False)
+    before = run.read_masks(cap.names)
+    now = label_inputs(cap)
+    changes = {"masks_changed": changed_label_inputs(info.label_inputs, now),
+               "relabels": int((info.relabel or {}).get("relabels", 0)) + 1}
+    seconds = {"check": time.time() - t0}
+    if progress:
+        console.print(f"[bold]labelsynth[/] relabel {run.path}: {check.summary()}; "
+                      f"{len(changes['masks_changed'])} input mask(s) changed since the last run")
+    with building(run.path, force=True, keep_previous=keep_previous) as partial:
+        t0 = time.time()
+        fit = fit_semantics(fitted, labelled_frames(cap, mode, fitted.recipe), seed=info.seed, progress=progress)
+        seconds["semantics"] = time.time() - t0
+        new = RunFolder(partial)
+        report_seconds = _write_outputs(new, cap, fitted.with_head(fit.head), fit.baked, mode, seconds=seconds,
+                                        recipe_name=str(info.recipe.get("name", "")), seed=info.seed, report=report,
+                                        mesh_format=mesh_format or "ply", mm_per_unit=mm_per_unit, progress=progress,
+                                        before=before, relabel=changes)
+        new.write_run(RunInfo(
+            capture=str(cap.root.resolve()), labels=mode.value, annotated_frames=info.annotated_frames,
+            recipe=info.recipe, device=str(dev), seed=info.seed, seconds=seconds, geometry=info.geometry,
+            semantic=vars(fit.stats), report_seconds=report_seconds, geometry_inputs=info.geometry_inputs,
+            label_inputs=now, relabel=changes,
+        ))
+    return RelabelResult(run.path, cap.names, mode, changes["masks_changed"], changes["pixels_changed"], seconds,
+                         previous_path(run.path) if keep_previous else None)
 
 
 def score_against_truth(out: str | Path, truth_dir: str | Path, classes, exclude: set[str] = frozenset()):

@@ -71,3 +71,47 @@ def test_merge_replaces_same_names_and_keeps_others(tmp_path) -> None:
 def test_write_text_atomic(tmp_path) -> None:
     path = write_text_atomic(tmp_path / "d" / "t.json", "{}")
     assert path.read_text() == "{}" and not partial_path(path).exists()
+
+
+def test_replacing_swaps_by_renames_and_keeps_the_previous_only_when_asked(tmp_path) -> None:
+    from labelsynth.outdir import previous_path
+
+    out = tmp_path / "out"
+    out.mkdir()
+    (out / "v.txt").write_text("1")
+    with building(out, force=True, keep_previous=True) as part:
+        (part / "v.txt").write_text("2")
+    assert (out / "v.txt").read_text() == "2" and (previous_path(out) / "v.txt").read_text() == "1"
+    with building(out, force=True, keep_previous=True) as part:  # one level: the older previous goes
+        (part / "v.txt").write_text("3")
+    assert (out / "v.txt").read_text() == "3" and (previous_path(out) / "v.txt").read_text() == "2"
+    with building(out, force=True) as part:
+        (part / "v.txt").write_text("4")
+    assert (out / "v.txt").read_text() == "4"
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["out"]
+
+
+def test_a_failed_swap_puts_the_old_out_back(tmp_path, monkeypatch) -> None:
+    """The second rename (OUT.partial -> OUT) fails: OUT.previous is renamed back, whole."""
+    import os
+
+    from labelsynth import outdir
+
+    out = tmp_path / "out"
+    out.mkdir()
+    (out / "v.txt").write_text("old")
+    real, calls = os.replace, []
+
+    def flaky(src, dst):
+        calls.append((src, dst))
+        if len(calls) == 2:
+            raise OSError("disk gone")
+        return real(src, dst)
+
+    monkeypatch.setattr(outdir.os, "replace", flaky)
+    with pytest.raises(OSError, match="disk gone"):
+        with building(out, force=True) as part:
+            (part / "v.txt").write_text("new")
+    assert [c[1].name for c in calls] == ["out.previous", "out", "out"]
+    assert (out / "v.txt").read_text() == "old"
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["out"]

@@ -118,3 +118,60 @@ def test_a_field_fits_only_the_capture_it_was_fitted_to(tmp_path):
     two = ClassMap((ClassInfo(0, "background", (0, 0, 0)), ClassInfo(1, "wound", (255, 0, 0), True)))
     with pytest.raises(RunFolderError, match="its class table differs from the field's"):
         run.check_fits(SimpleNamespace(head=object(), classes=two, normalization=norm), capture)
+
+
+def test_what_a_run_read_is_recorded_and_compared(tmp_path):
+    """geometry_inputs (image files and cameras), label_inputs (decoded masks) and what changed."""
+    import shutil
+
+    import cv2
+    import numpy as np
+
+    from labelsynth.capture import load_capture
+    from labelsynth.rundir import GeometryInputsChanged, changed_label_inputs, geometry_inputs, label_inputs
+
+    from .capture.test_capture_support import capture_with_annotations
+
+    cap_dir = capture_with_annotations(tmp_path / "cap", {})
+    first = load_capture(cap_dir)
+    name, size = first.frames[0].name, first.frames[0].size
+    mask = np.zeros((size[1], size[0]), np.uint8)
+    mask[2:6, 2:9] = 1
+    cv2.imwrite(str(cap_dir / "annotations" / f"{name}.png"), mask)
+    cap = load_capture(cap_dir)
+    info = RunInfo(capture=str(cap_dir), labels="annotations", geometry_inputs=geometry_inputs(cap),
+                   label_inputs=label_inputs(cap))
+    run = RunFolder(tmp_path / "out")
+    run.path.mkdir()
+    run.write_run(info)
+    back = run.read_run()
+    assert back == info and set(back.geometry_inputs) == {"images", "cameras"}
+    assert back.label_inputs == {"annotations": {name: back.label_inputs["annotations"][name]}, "predictions": {}}
+    run.check_geometry_inputs(back, cap)  # the same capture fits
+    # the same ids saved as a palette PNG: the same mask; another id: changed; a new mask: added
+    from PIL import Image
+
+    pal = Image.fromarray(mask, mode="P")
+    pal.putpalette([0, 0, 0, 200, 40, 40] + [0] * 762)
+    pal.save(cap_dir / "annotations" / f"{name}.png")
+    assert changed_label_inputs(back.label_inputs, label_inputs(load_capture(cap_dir))) == []
+    mask[0, 0] = 2
+    cv2.imwrite(str(cap_dir / "annotations" / f"{name}.png"), mask)
+    other = cap.frames[1].name
+    cv2.imwrite(str(cap_dir / "annotations" / f"{other}.png"), mask)
+    assert changed_label_inputs(back.label_inputs, label_inputs(load_capture(cap_dir))) == [
+        f"annotations/{name}", f"annotations/{other}"]
+    assert changed_label_inputs(None, {"annotations": {"a": "x"}}) == ["annotations/a"]
+    # a changed image is refused in one line naming the frame
+    img = cap_dir / "images" / f"{cap.frames[2].name}.png"
+    shutil.copy(cap_dir / "images" / f"{cap.frames[3].name}.png", img)
+    with pytest.raises(GeometryInputsChanged, match=rf"the image of frame {cap.frames[2].name} changed") as err:
+        run.check_geometry_inputs(back, load_capture(cap_dir))
+    assert "\n" not in str(err.value)
+
+
+def test_a_run_caught_between_its_two_renames_says_so(tmp_path):
+    run = _finished(tmp_path / "out.previous")
+    with pytest.raises(RunFolderError, match=r"out: not found, but .*out\.previous holds the run it was replacing"):
+        RunFolder(tmp_path / "out").check_finished()
+    assert run.is_finished()

@@ -14,11 +14,11 @@ from ..classes import WOUND_BED, ClassMap
 from ..errors import LabelsynthError
 from ..export.mesh import MESH_FORMATS, export_labelled_mesh
 from ..outdir import write_text_atomic
-from ..progress import phase
+from ..progress import phase, track
 from ..render.renderer import FieldRenderer
 from ..rundir import MESH_STEM, RunFolder
 from ..semantics.head import SemanticHead
-from . import plots
+from . import gallery, plots
 from .consistency import (
     Check,
     agreement,
@@ -135,28 +135,25 @@ def _summary(capture: Capture, mode: str, frames: list[dict], ann: dict, pred: d
     }
 
 
-def _figures(capture: Capture, report: dict, ann: dict, pred: dict, masks: dict,
-             loo_masks: dict) -> tuple[dict, dict]:
-    """Step 7: the plots and, for every flagged frame, its overlay strip."""
+def _figures(capture: Capture, report: dict, ann: dict, pred: dict, masks: dict, loo_masks: dict,
+             progress: bool) -> tuple[dict, list[gallery.FrameView]]:
+    """Step 7: the plots, and every frame's thumbnail and large view in review order."""
     classes, names, frames = capture.classes, capture.names, report["frames"]
     keys, views = report["summary"]["keys"], report["views"]
     figures = {"agreement": plots.agreement_plot(frames, keys, classes),
                "class_area": plots.class_area_plot(names, [f["field_pixels"] for f in frames], classes)}
     if views:
         figures["pairwise"] = plots.pairwise_heatmap(views, report["pairwise"])
+    if any("pixels_changed" in f for f in frames):
+        figures["pixels_changed"] = plots.pixels_changed_plot(
+            names, [f.get("pixels_changed", 0) for f in frames], [masks[n].size for n in names])
     index = {n: i for i, n in enumerate(names)}
-    strips = {}
-    for f in frames:
-        if not f["flagged"]:
-            continue
-        name = f["name"]
-        if name in loo_masks:
-            inp, fm, label = ann[name], loo_masks[name], "field without this frame"
-        else:
-            inp, fm, label = ann.get(name, pred.get(name)), masks[name], "field"
-        strips[name] = plots.overlay_strip(capture.load_image(index[name]), inp, fm, classes,
-                                           f"{name}: {f['reason']}", label)
-    return figures, strips
+    shown = []
+    for name in track(gallery.review_order(frames), "report: frame views", enabled=progress):
+        kind, inp = ("annotation", ann[name]) if name in ann else ("prediction", pred.get(name))
+        shown.append(gallery.frame_view(name, capture.load_image(index[name]), masks[name], classes,
+                                        input_mask=inp, input_kind=kind, judge_mask=loo_masks.get(name)))
+    return figures, shown
 
 
 def build_report(
@@ -173,6 +170,7 @@ def build_report(
     mm_per_unit: float | None = None,
     loo: bool = True,
     unseen: dict[str, float] | None = None,
+    relabel: dict | None = None,
 ) -> dict:
     """Write OUT/report.json, OUT/report.html and OUT/mesh.ply (+ .glb); return the report.
 
@@ -184,7 +182,10 @@ def build_report(
     frame is rendered with its own head. ``mesh_format=None`` skips the mesh (and its areas).
     ``loo=False`` skips the leave-one-view-out refits (then annotated frames are judged by
     agreement only). ``unseen``: each frame's share of pixels whose surface no teaching frame
-    saw (``pipeline.render_outputs``), written per frame and summarised.
+    saw (``pipeline.render_outputs``), written per frame and summarised. ``relabel`` (run.json's,
+    from ``pipeline.relabel``): the input masks that changed since the previous run and, per
+    frame, the pixels whose class changed; the report keeps both (summary ``relabel``, frame
+    ``pixels_changed``) and the page shows them.
     """
     t0 = time.time()
     run = out if isinstance(out, RunFolder) else RunFolder(out)
@@ -230,13 +231,21 @@ def build_report(
         summary["median_unseen_share"] = float(np.median(shares)) if shares else None
         summary["max_unseen_share"] = float(max(shares)) if shares else None
         summary["unseen_confidence"] = view.config.unseen_confidence
+    changed = (relabel or {}).get("pixels_changed")
+    if relabel is not None:
+        summary["relabel"] = {"masks_changed": list(relabel.get("masks_changed", [])),
+                              "relabels": relabel.get("relabels", 1)}
     for f in frames:
         f.pop("_present")
+        if changed is not None and f["name"] in changed:
+            f["pixels_changed"] = int(changed[f["name"]])
     report = {"frames": frames, "views": views, "pairwise": pairwise, "summary": summary}
     with phase(seconds, "figures", "report: figures", progress):
-        figures, strips = _figures(capture, report, ann, pred, masks, loo_masks)
+        figures, shown = _figures(capture, report, ann, pred, masks, loo_masks, progress)
     summary["seconds"] = time.time() - t0
     summary["phase_seconds"] = seconds
     write_text_atomic(run.report_json, json.dumps(report, indent=2))
-    write_text_atomic(run.report_html, render_html(report, figures, strips))
+    background = classes.classes[classes.background_index].id
+    legend = [c for c in classes.to_json()["classes"] if c["id"] != background]  # background is left clear
+    write_text_atomic(run.report_html, render_html(report, figures, shown, legend))
     return report

@@ -11,7 +11,7 @@ matplotlib.use("Agg", force=False)
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
-from ..classes import IGNORE_ID, WOUND_BED, ClassMap  # noqa: E402
+from ..classes import WOUND_BED, ClassMap  # noqa: E402
 
 DPI = 96
 
@@ -98,43 +98,15 @@ def pairwise_heatmap(views: Sequence[str], matrix: Sequence[Sequence[float | Non
     return _png(fig)
 
 
-def difference_image(reference: np.ndarray, other: np.ndarray, classes: ClassMap) -> np.ndarray:
-    """RGB: red = wound bed only in the input, blue = only in the field, yellow = other tissue."""
-    wb = np.asarray(classes.wound_bed_ids)
-    a, b = np.isin(reference, wb), np.isin(other, wb)
-    img = np.full(reference.shape + (3,), 235, dtype=np.uint8)
-    img[a & ~b] = (220, 30, 30)
-    img[~a & b] = (30, 80, 220)
-    img[a & b & (reference != other)] = (240, 200, 0)
-    img[a & b & (reference == other)] = (150, 150, 150)
-    img[reference == IGNORE_ID] = (255, 255, 255)
-    return img
-
-
-def overlay_strip(
-    image: np.ndarray, input_mask: np.ndarray, field_mask: np.ndarray, classes: ClassMap,
-    title: str, field_label: str = "field",
-) -> bytes:
-    """Image, input mask, field mask and their difference side by side."""
-    panels = [
-        (image, "image"),
-        (_blend(image, input_mask, classes), "input mask"),
-        (_blend(image, field_mask, classes), field_label),
-        (difference_image(input_mask, field_mask, classes), "difference (red: input only, blue: field only)"),
-    ]
-    h, w = input_mask.shape
-    fig, axes = plt.subplots(1, 4, figsize=(12, 12 * h / (4 * w) + 0.6))
-    for ax, (img, label) in zip(axes, panels):
-        ax.imshow(img, interpolation="nearest")
-        ax.set_title(label, fontsize=8)
-        ax.axis("off")
-    fig.suptitle(title, fontsize=10)
+def pixels_changed_plot(names: Sequence[str], changed: Sequence[int], sizes: Sequence[int]) -> bytes:
+    """Per frame, the share of pixels whose class a relabel changed (what a fix did to every frame)."""
+    x = np.arange(len(names))
+    share = 100.0 * np.asarray(changed, dtype=float) / np.maximum(np.asarray(sizes, dtype=float), 1.0)
+    fig, ax = plt.subplots(figsize=(max(6.0, 0.22 * len(names) + 2), 3.0))
+    ax.bar(x, share, color="tab:purple")
+    ax.set_ylabel("% of pixels")
+    ax.set_xticks(x)
+    ax.set_xticklabels(names, rotation=90, fontsize=7)
+    ax.grid(axis="y", alpha=0.3)
+    ax.set_title("Pixels whose class changed since the previous run (relabel)")
     return _png(fig)
-
-
-def _blend(image: np.ndarray, mask: np.ndarray, classes: ClassMap, alpha: float = 0.55) -> np.ndarray:
-    colour = classes.colorize(mask).astype(np.float32)
-    out = image.astype(np.float32)
-    sel = (mask != classes.classes[classes.background_index].id) & (mask != IGNORE_ID)
-    out[sel] = (1 - alpha) * out[sel] + alpha * colour[sel]
-    return out.astype(np.uint8)

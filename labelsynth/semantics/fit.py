@@ -108,6 +108,7 @@ def leave_one_out_heads(
                                     seed=seed, progress=progress)
     for name in names:
         if name not in heads:
+            torch.manual_seed(seed)  # as fit_head: a report rebuilt from field.pt gets the same heads
             head = make_semantic_head(sdf, classes, cfg)
             train_semantic(head, baked, classes, cfg, seed=seed, progress=False)
             heads[name] = head

@@ -34,6 +34,8 @@ from labelsynth.render.surface import SurfaceCaster
 from labelsynth.report.build import build_report
 from labelsynth.report.consistency import Check, flag_frames, pairwise_consistency
 
+from .browser import browser_or_skip, launch, open_page
+
 W, H, F = 64, 48, 60.0
 ANNOTATED = (0, 2, 3, 5)
 COLOURS = {0: (200, 150, 120), 1: (200, 40, 40), 2: (230, 210, 60)}
@@ -222,7 +224,10 @@ def test_wrong_annotation_is_flagged_and_only_it(tmp_path, corrupt, what):
     assert report["summary"]["flagged"] == ["frame_003"]
     assert report["summary"]["median_loo_dice"]["wound_bed"] is not None
     html_text = (out / "report.html").read_text()
-    assert "frame_003" in html_text and "Flagged frames" in html_text
+    thumbs = re.findall(r'<a class="(thumb[^"]*)" href="#v-\d+" data-view="\d+" data-frame="([^"]+)"', html_text)
+    assert thumbs[0] == ("thumb flag", "frame_003")  # the review gallery starts with the flagged frame
+    assert sorted(n for _, n in thumbs) == [f"frame_{k:03d}" for k in range(6)]
+    assert [c for c, _ in thumbs].count("thumb flag") == 1
 
 
 def test_pairwise_exposes_the_shifted_view(tmp_path):
@@ -274,34 +279,57 @@ def test_flag_rule_small_groups_and_margin():
     assert flag_frames([Check("a", "loo", {"wound_bed": 0.1}), Check("b", "loo", {"wound_bed": 0.7})])["b"][0]
 
 
-def _chromium() -> str | None:
-    for name in ("/usr/bin/chromium", "/usr/bin/chromium-browser"):
-        if os.path.exists(name):
-            return name
-    return None
-
-
 def test_html_is_self_contained_and_renders(tmp_path):
-    out, *_ = run_plane_report(tmp_path, corrupt=_shift, mesh_format=None)
-    page = (out / "report.html").read_text()
-    assert page.startswith("<!DOCTYPE html>") and page.rstrip().endswith("</html>")
-    assert not re.search(r"(src|href)\s*=\s*[\"']?\s*(https?:)?//", page, re.I)
-    assert "http://" not in page and "https://" not in page
-    assert "<script" not in page.lower() and "<link" not in page.lower()
-    assert page.count("data:image/png;base64,") >= 4  # agreement, class area, heat map, flagged strip
-    chromium = _chromium()
-    if chromium is None:
-        pytest.skip("no chromium at /usr/bin/chromium: page not rendered")
-    shot = tmp_path / "shot.png"
-    with tempfile.TemporaryDirectory() as profile:
-        subprocess.run(
-            [chromium, "--headless", "--no-sandbox", "--disable-gpu", "--disable-background-networking",
-             "--disable-component-update", "--no-first-run", "--disable-sync", f"--user-data-dir={profile}",
-             f"--screenshot={shot}", "--window-size=1200,2000", (out / "report.html").resolve().as_uri()],
-            check=True, timeout=120, capture_output=True,
-        )
-    img = cv2.imread(str(shot))
-    assert img is not None and img.std() > 5.0
+    """The review page in a real browser: the gallery (flagged first), a click opens the frame
+    with its panels, the summary, table and plots show, the screenshot is not blank, and the
+    page asks nothing of the network."""
+    out, report, *_ = run_plane_report(tmp_path, corrupt=_shift, mesh_format=None)
+    page_file = out / "report.html"
+    text = page_file.read_text()
+    assert text.startswith("<!DOCTYPE html>") and text.rstrip().endswith("</html>")
+    assert not re.search(r"(src|href)\s*=\s*[\"']?\s*(https?:)?//", text, re.I)
+    assert "http://" not in text and "https://" not in text
+    assert "<link" not in text.lower() and not re.search(r"<script[^>]*\ssrc=", text, re.I)
+    assert not re.search(r"url\((?![\"']?data:)", text)  # CSS backgrounds are data URIs too
+    sync_playwright = browser_or_skip()
+    requests: list[str] = []
+    with sync_playwright() as pw:
+        browser = launch(pw)
+        page = open_page(browser, page_file, requests)
+        thumbs = page.locator(".gallery a.thumb")
+        assert thumbs.count() == 6
+        assert thumbs.first.get_attribute("data-frame") == "frame_003"
+        assert "flag" in thumbs.first.get_attribute("class")
+        assert page.evaluate("[...document.querySelectorAll('.gallery img')].every(i => i.complete && i.naturalWidth > 0)")
+        for section in ("#summary", "#frames", "#plots", "#flagged"):
+            assert page.locator(section).is_visible()
+        assert page.locator("#frames + table tr").count() == 7  # header + six frames
+        assert page.locator("#plots ~ h3 + img.fig").count() >= 3  # agreement, class area, pairwise
+        assert page.evaluate("[...document.querySelectorAll('img.fig')].every(i => i.naturalWidth > 100)")
+        page.screenshot(path=str(tmp_path / "page.png"), full_page=True)
+        view = page.locator("#v-0")
+        assert not view.is_visible()
+        y = page.evaluate("window.scrollY")
+        thumbs.first.click()
+        assert view.is_visible()
+        titles = view.locator("figcaption").all_inner_texts()
+        assert [t.split(" ")[0] for t in titles] == ["frame", "input", "field's", "field", "difference"], titles
+        boxes = [view.locator(".pic").nth(k).bounding_box() for k in range(5)]
+        assert all(b is not None and b["width"] > 200 and b["height"] > 100 for b in boxes)
+        assert view.evaluate("v => [...v.querySelectorAll('img')].every(i => i.complete && i.naturalWidth == 64)")
+        page.screenshot(path=str(tmp_path / "view.png"))
+        page.keyboard.press("ArrowRight")
+        assert page.locator("#v-1").is_visible() and not view.is_visible()
+        page.keyboard.press("Escape")
+        assert not page.locator("#v-1").is_visible() and page.evaluate("window.scrollY") == y
+        browser.close()
+    assert requests == []
+    for shot in ("page.png", "view.png"):
+        img = cv2.imread(str(tmp_path / shot))
+        assert img is not None and img.std() > 5.0, shot
+    # the large view shows the frame: its screenshot is far from the page's white
+    view_shot = cv2.imread(str(tmp_path / "view.png"))
+    assert view_shot.mean() < 200
 
 
 def test_rebuild_report_and_cli(tmp_path, monkeypatch):

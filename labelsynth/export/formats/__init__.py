@@ -9,6 +9,9 @@ image, class-id mask, confidence) in one of ``EXPORT_FORMATS``:
   region per frame, confidence as ``score`` (``formats.coco``);
 - ``cityscapes``: ``*_gtFine_labelIds.png`` beside ``*_leftImg8bit.png`` trees (``formats.cityscapes``).
 
+``export_run(OUT, to, fmt=...)`` (``labelsynth export``) does it for a finished expand output:
+every frame of OUT/labels.h5, or the report's flagged ones, or those no expert annotated.
+
 ``min_confidence``: pixels less confident become ignore (255; COCO: left out). ``flagged``
 (the report's flagged frames) are listed in README.txt (and COCO's ``info``). The export is
 built in ``TO.partial`` and renamed when whole, so an interrupted export leaves nothing that
@@ -38,7 +41,8 @@ EXPORT_FORMATS: tuple[str, ...] = ("cvat", "voc", "coco", "cityscapes")
 FRAME_CHOICES: tuple[str, ...] = ("all", "flagged", "unannotated")
 README = "README.txt"
 
-__all__ = ["EXPORT_FORMATS", "FRAME_CHOICES", "ExportFrame", "ExportResult", "choose_frames", "export_frames"]
+__all__ = ["EXPORT_FORMATS", "FRAME_CHOICES", "ExportFrame", "ExportResult", "choose_frames", "export_frames",
+           "export_run"]
 
 
 @dataclass
@@ -141,3 +145,74 @@ def _write(sink: Sink, frames: Iterable[ExportFrame], classes: ClassMap, fmt: st
     sink.write(README, readme_text(fmt, writer.layout, classes, writer.names, list(flagged), min_confidence,
                                    writer.ignore_text, source))
     return ExportResult(Path(), fmt, list(writer.names), ignored, 0.0, list(flagged))
+
+
+def _check_target(to: Path, fmt: str, force: bool, keep_out_of: dict[str, tuple[Path, str]]) -> None:
+    """Refuse, before anything is written, a target that cannot or must not be written: the wrong
+    kind for the format, one that exists without ``force``, or one inside (or holding) a folder in
+    ``keep_out_of`` (the run itself: ``--force`` would delete it; the capture: never written)."""
+    if fmt == "cvat" and to.suffix.lower() != ".zip":
+        raise ExportError(f"{to}: a cvat export is a .zip file (e.g. --to {to.with_suffix('.zip').name})")
+    if to.exists():
+        if fmt == "cvat" and to.is_dir():
+            raise ExportError(f"{to}: exists and is a folder (a cvat export is a .zip file)")
+        if fmt != "cvat" and not to.is_dir():
+            raise ExportError(f"{to}: exists and is not a folder (a {fmt} export is a folder)")
+        if not force and (fmt == "cvat" or any(to.iterdir())):
+            raise ExportError(f"{to}: exists (use --force to replace it)")
+    target = to.resolve()
+    for what, (folder, why) in keep_out_of.items():
+        folder = folder.resolve()
+        if folder in target.parents:
+            raise ExportError(f"{to}: inside {what} {folder} ({why}); export somewhere else")
+        if target == folder or target in folder.parents:
+            raise ExportError(f"{to}: would replace {what} {folder}; export somewhere else")
+
+
+def export_run(
+    out: str | Path,
+    to: str | Path,
+    *,
+    fmt: str,
+    frames: str = "all",
+    min_confidence: float | None = None,
+    force: bool = False,
+    progress: bool = True,
+) -> ExportResult:
+    """Export a finished expand output (``labelsynth export``): the frames of OUT/labels.h5 that
+    ``frames`` chooses (``choose_frames``), read one at a time with their images and confidence,
+    the report's flagged frames listed in the export. Every option and the target are checked
+    before anything is written; nothing in OUT or the capture is ever written."""
+    from ...rundir import RunFolder
+    from ..labels_h5 import LabelsReader
+
+    if fmt not in EXPORT_FORMATS:
+        raise ExportError(f"--format {fmt!r}: expected one of {', '.join(EXPORT_FORMATS)}")
+    if frames not in FRAME_CHOICES:
+        raise ExportError(f"--frames {frames!r}: expected one of {', '.join(FRAME_CHOICES)}")
+    if min_confidence is not None and not (isinstance(min_confidence, (int, float)) and 0.0 <= min_confidence <= 1.0):
+        raise ExportError(f"--min-confidence {min_confidence}: expected a number in 0..1")
+    run = RunFolder(out)
+    run.check_finished()
+    capture = Path(run.read_run().capture)
+    to = Path(to)
+    _check_target(to, fmt, force, {
+        "the run folder": (run.path, "relabel replaces that folder as a whole"),
+        "the capture": (capture, "labelsynth never writes into a capture, and an export in annotations/ "
+                                 "would be read as expert masks"),
+    })
+    summary = run.read_report_summary()
+    flagged = summary.get("flagged") if summary else None
+    reader = LabelsReader(run.labels_path)
+    with reader:
+        chosen = choose_frames(reader.frame_names, list(reader.annotated), frames, flagged)
+        index = {n: i for i, n in enumerate(reader.frame_names)}
+
+        def stream():
+            for name in chosen:
+                image, mask, confidence = reader.read(index[name])
+                yield ExportFrame(name, mask, image, confidence, bool(reader.annotated[index[name]]))
+
+        return export_frames(stream(), reader.classes, to, fmt=fmt, flagged=list(flagged or []),
+                             min_confidence=min_confidence, source=str(run.path.resolve()), name=capture.name,
+                             total=len(chosen), force=force, progress=progress)
