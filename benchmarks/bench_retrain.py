@@ -474,7 +474,18 @@ def main() -> None:
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--retrain", default="", help="comma list of arms whose models are redone ('all' for every arm)")
     ap.add_argument("--table", action="store_true", help="only print the table of the arms already done")
+    ap.add_argument("--threads", type=int, default=0,
+                    help="compute threads of this process and of the commands it runs (0: the libraries' default). "
+                         "On 2 cores shared with other jobs (load 17), 1 thread ran a training step in 2.7 s, 2 in 14.5 s")
     args = ap.parse_args()
+    if args.threads:
+        for var in ("OMP_NUM_THREADS", "MKL_NUM_THREADS", "OPENBLAS_NUM_THREADS"):
+            os.environ[var] = str(args.threads)
+        import cv2
+        import torch
+
+        torch.set_num_threads(args.threads)
+        cv2.setNumThreads(args.threads)
     retrain = set(args.retrain.split(",")) if args.retrain else set()
     args.retrain_arm = lambda arm: "all" in retrain or arm in retrain
     os.environ.setdefault("NO_ALBUMENTATIONS_UPDATE", "1")
