@@ -166,7 +166,7 @@ def test_bad_input_is_one_line(data, tmp_path):
         (["--holdout", str(data["cap"])], "cannot also be trained on"),
         (["--labels", "guess"], "--labels"),
         (["--model", str(tmp_path / "none.onnx")], "model file not found"),
-        (["--holdout", str(tmp_path)], "not a capture folder"),
+        (["--holdout", str(tmp_path)], "no camera poses"),
     ]
     for extra, needle in cases:
         res = runner.invoke(app, [*base, *extra])
