@@ -71,15 +71,20 @@ def expanded(capture: Path, out: Path, recipe: str) -> Path:
 
 
 def load_case(out: Path):
-    """(Expanded, RealFrames) of an expand output."""
-    from labelsynth.device import pick_device
-    from labelsynth.novel.source import load_expanded
-    from labelsynth.novel.views import RealFrames
+    """(the run: its capture and the field's renderer, RealFrames, images) of an expand output."""
+    from types import SimpleNamespace
 
-    ex = load_expanded(out, pick_device("cpu"))
-    cap = ex.capture
+    from labelsynth.novel.views import RealFrames
+    from labelsynth.render.renderer import FieldRenderer
+    from labelsynth.rundir import RunFolder
+
+    run = RunFolder(out)
+    _, cap = run.open_capture()
+    fitted = run.load_field("cpu")
+    run.check_fits(fitted, cap)
+    ex = SimpleNamespace(capture=cap, view=FieldRenderer(fitted))
     images = [cap.load_image(i) for i in range(len(cap))]
-    return ex, RealFrames(ex.field, cap.unit_cameras(), images), images
+    return ex, RealFrames(ex.view, cap.unit_cameras(), images), images
 
 
 # --- leave-one-frame-out ------------------------------------------------------------------------
@@ -105,7 +110,7 @@ def loo(out: Path, every: int, head_frames: int, configs: dict[str, dict]) -> di
         real.cfg = BlendConfig(**overrides)
         rows, t0 = [], time.perf_counter()
         for i in idx:
-            v = render_view(ex.field, real, cams[i], exclude={i})
+            v = render_view(ex.view, real, cams[i], exclude={i})
             p, s = masked_metrics(v.image, images[i], v.valid)
             rows.append({"frame": ex.capture.frames[i].name, "psnr": p, "ssim": s, "valid": v.valid_fraction})
         res[label] = {"config": overrides, "frames": rows, "psnr": float(np.mean([r["psnr"] for r in rows])),
@@ -118,9 +123,9 @@ def loo(out: Path, every: int, head_frames: int, configs: dict[str, dict]) -> di
         real.cfg = BlendConfig()
         rows = []
         for i in idx[:head_frames]:
-            v = render_view(ex.field, real, cams[i], exclude={i})
+            v = render_view(ex.view, real, cams[i], exclude={i})
             t0 = time.perf_counter()
-            rgb = colour_head(ex.field, cams[i]).numpy().reshape(v.image.shape).round().clip(0, 255).astype(np.uint8)
+            rgb = colour_head(ex.view.field, cams[i]).numpy().reshape(v.image.shape).round().clip(0, 255).astype(np.uint8)
             sec = time.perf_counter() - t0
             p_head, s_head = masked_metrics(rgb, images[i], v.valid)
             p_blend, s_blend = masked_metrics(v.image, images[i], v.valid)
@@ -154,12 +159,12 @@ def novel_dice(out: Path, truth_dir: Path, views: int, seed: int) -> dict:
 
     ex, real, _ = load_case(out)
     cams = ex.capture.unit_cameras()
-    caster = ex.field.render_caster()
+    caster = ex.view.render_caster()
     poses = sample_poses(views, np.random.default_rng(seed), path_points(cams, caster), Spread(), caster, real)
     scene = SynthScene.from_truth(truth_dir)
     preds, truths, lost = [], [], []
     for cam in poses.cameras:
-        v = render_view(ex.field, real, cam)
+        v = render_view(ex.view, real, cam)
         _, truth, _ = scene.render(world_camera(cam, ex.capture.normalization))
         bed = truth > 0
         lost.append(float((bed & ~v.valid).sum() / max(1, bed.sum())))

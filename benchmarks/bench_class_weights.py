@@ -20,7 +20,8 @@ from labelsynth.evaluation.bench import load_truths
 from labelsynth.evaluation.metrics import score_frames
 from labelsynth.pipeline import fit_geometry, fit_semantics, labelled_frames
 from labelsynth.recipe import load_recipe
-from labelsynth.semantics.head import DECISION_RULES
+from labelsynth.render.renderer import FieldRenderer
+from labelsynth.semantics.config import DECISION_RULES
 
 
 def main() -> None:
@@ -41,7 +42,8 @@ def main() -> None:
     scored = [n for n in capture.names if n not in annotated]
     truths = load_truths(args.truth, capture, scored)
     t0 = time.perf_counter()
-    sem, _ = fit_geometry(capture, load_recipe(args.recipe, args.overrides), device, progress=False)
+    geometry, _ = fit_geometry(capture, load_recipe(args.recipe, args.overrides), device, progress=False)
+    view = FieldRenderer(geometry)  # one surface for every scheme and rule
     print(f"geometry {time.perf_counter() - t0:.0f} s; scoring {len(scored)} unannotated frames", flush=True)
     cams = dict(zip(capture.names, capture.unit_cameras()))
     for mode in args.labels.split(","):
@@ -49,13 +51,14 @@ def main() -> None:
         for spec in args.schemes.split(","):
             scheme, _, background = spec.partition(":")
             sets = [f"semantic.class_weighting={scheme}"] + ([f"semantic.background_weight={background}"] if background else [])
-            sem.recipe = load_recipe(args.recipe, args.overrides + sets)
+            geometry.recipe = load_recipe(args.recipe, args.overrides + sets)  # this benchmark's own field
             t0 = time.perf_counter()
-            stats = fit_semantics(sem, labelled_frames(capture, mode, sem.recipe), baked=baked, progress=False)
-            baked = sem.baked if baked is None else baked
+            fit = fit_semantics(geometry, labelled_frames(capture, mode, geometry.recipe), baked=baked, progress=False)
+            baked = fit.baked if baked is None else baked
+            stats = vars(fit.stats)
             for rule in args.decisions.split(","):
-                sem.recipe.render.decision = rule
-                masks = [sem.render(cams[n]).mask for n in scored]
+                geometry.recipe.render.decision = rule
+                masks = [view.render(cams[n], fit.head).mask for n in scored]
                 scores = score_frames(masks, [truths[n] for n in scored], capture.classes, scored)
                 cells = " ".join(f"{r['class']} {r['dice']:.3f}/{r['recall']:.3f}" for r in scores.table() if r["n"])
                 print(f"{mode:11s} {spec:18s} ({stats['class_weighting']}) {rule:15s} "

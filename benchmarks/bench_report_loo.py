@@ -37,7 +37,8 @@ def main() -> None:
     from labelsynth.capture import load_capture
     from labelsynth.classes import WOUND_BED
     from labelsynth.device import pick_device
-    from labelsynth.pipeline import fit_geometry, fit_semantics, labelled_frames, refit_without
+    from labelsynth.pipeline import fit_geometry, fit_semantics, labelled_frames, leave_one_out_heads_of
+    from labelsynth.render.renderer import FieldRenderer
     from labelsynth.recipe import load_recipe
     from labelsynth.report.consistency import Check, agreement, checked_keys, flag_frames, leave_one_out
 
@@ -55,16 +56,19 @@ def main() -> None:
         recipe = load_recipe(args.recipe, args.overrides)
         device = pick_device(args.device)
         t0 = time.time()
-        sem, _ = fit_geometry(capture, recipe, device, progress=True)
+        geometry, _ = fit_geometry(capture, recipe, device, progress=True)
         frames = labelled_frames(capture, "annotations", recipe)
-        stats = fit_semantics(sem, frames, progress=True)
-        print(f"field: {time.time() - t0:.0f} s (semantic stage {stats['seconds']:.1f} s, {stats['iterations']} steps)")
+        fit = fit_semantics(geometry, frames, progress=True)
+        fitted = geometry.with_head(fit.head)
+        view = FieldRenderer(fitted)
+        print(f"field: {time.time() - t0:.0f} s (semantic stage {fit.stats.seconds:.1f} s, {fit.stats.iterations} steps)")
         ann = {f.name: f.mask for f in frames}
         names = [n for n in capture.names if n in ann]
         for fraction in [float(x) for x in args.fractions.split(",")]:
-            sem.recipe.report.loo_fraction = fraction
+            fitted.recipe.report.loo_fraction = fraction
             t1 = time.time()
-            loo = leave_one_out(sem, capture, names, refit_without(sem, capture, "annotations"), progress=False)
+            heads = leave_one_out_heads_of(fitted, capture, "annotations", names, baked=fit.baked)
+            loo = leave_one_out(view, capture, heads, progress=False)
             seconds = time.time() - t1
             dice = {n: agreement(ann[n], loo[n], capture.classes) for n in names}
             checks = [Check(n, "loo", {k: 1.0 - dice[n][k] for k in checked_keys(ann[n], loo[n], capture.classes)})

@@ -98,10 +98,14 @@ class Camera:
             return np.stack([(pixels[:, 0] - self.cx) / self.fx, (pixels[:, 1] - self.cy) / self.fy], -1)
         # OpenCV's pixel convention puts the centre of the top-left pixel at (0, 0); ours at
         # (0.5, 0.5). cx, cy are in our convention (as in nerfstudio/COLMAP), so no shift.
-        out = cv2.undistortPoints(
-            pixels.reshape(-1, 1, 2), self.K, self.dist_coeffs, None, None, None,
-            (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 50, 1e-12),
-        )
+        criteria = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 50, 1e-12)
+        src = pixels.reshape(-1, 1, 2)
+        # OpenCV 4 takes the stopping criteria only in undistortPointsIter; OpenCV 5 folded them
+        # into undistortPoints (and a dev install pins OpenCV < 5 through Datumaro): either works.
+        if hasattr(cv2, "undistortPointsIter"):
+            out = cv2.undistortPointsIter(src, self.K, self.dist_coeffs, None, None, criteria)
+        else:
+            out = cv2.undistortPoints(src, self.K, self.dist_coeffs, None, None, None, criteria)
         return out.reshape(-1, 2)
 
     def distort_normalized(self, xy: np.ndarray) -> np.ndarray:

@@ -135,7 +135,7 @@ def expand(
     set_: list[str] = typer.Option([], "--set", help="Override a recipe value, e.g. --set geometry.iterations=500"),
     force: bool = typer.Option(False, help="Replace a finished OUT."),
     mesh_format: str = typer.Option("ply", "--mesh-format", help="ply | glb: OUT/mesh.ply is always written; glb adds OUT/mesh.glb."),
-    mm_per_unit: Optional[float] = typer.Option(None, "--mm-per-unit", min=0.0, help="Millimetres per scene unit: class areas in mm² too."),
+    mm_per_unit: Optional[float] = typer.Option(None, "--mm-per-unit", help="Millimetres per scene unit (> 0): class areas in mm² too."),
     annotated_frames: Optional[str] = typer.Option(
         None, "--annotated-frames",
         help="Only these frames' annotations teach: names or 0-based indices (a,b,3), every:K or spread:N (default: all).",
@@ -147,12 +147,13 @@ def expand(
     ),
 ) -> None:
     """Fit a 3D semantic field to the capture and render consistent masks for every frame."""
+    from .options import ExpandOptions
     from .pipeline import expand as run_expand
 
-    result = run_expand(
-        capture, out, labels=labels, recipe=recipe, device=device, seed=seed, overrides=set_, force=force,
-        mesh_format=mesh_format, mm_per_unit=mm_per_unit, annotated_frames=annotated_frames, report=report,
-    )
+    options = ExpandOptions(labels=labels, recipe=recipe, device=device, seed=seed, overrides=set_,
+                            annotated_frames=annotated_frames, report=report, mesh_format=mesh_format,
+                            mm_per_unit=mm_per_unit)
+    result = run_expand(capture, out, options, force=force)
     typer.echo(result.summary())
 
 
@@ -170,7 +171,7 @@ def batch(
     annotated_frames: Optional[str] = typer.Option(None, "--annotated-frames", help="As for expand, applied to every capture."),
     report: bool = typer.Option(True, "--report/--no-report", help="Write each capture's consistency report and mesh."),
     mesh_format: str = typer.Option("ply", "--mesh-format", help="ply | glb"),
-    mm_per_unit: Optional[float] = typer.Option(None, "--mm-per-unit", min=0.0, help="Millimetres per scene unit."),
+    mm_per_unit: Optional[float] = typer.Option(None, "--mm-per-unit", help="Millimetres per scene unit (> 0)."),
     address: Optional[str] = typer.Option(None, "--address", help="Ray cluster to attach to (default: RAY_ADDRESS, else a local instance)."),
     cpus_per_capture: Optional[int] = typer.Option(None, "--cpus-per-capture", min=1, help="CPUs (and threads) per capture (default: 4, at most a node's)."),
     gpus_per_capture: float = typer.Option(0.0, "--gpus-per-capture", min=0.0, help="GPUs per capture; only on a cluster with GPUs."),
@@ -180,7 +181,8 @@ def batch(
     """Expand many captures as Ray tasks: resumable, one table of outcomes, one merged dataset.h5."""
     from rich.console import Console
 
-    from .batch import ExpandOptions, rich_table, run_batch
+    from .batch import rich_table, run_batch
+    from .options import ExpandOptions
 
     opts = ExpandOptions(labels=labels, recipe=recipe, device=device, seed=seed, overrides=set_,
                          annotated_frames=annotated_frames, report=report, mesh_format=mesh_format,
@@ -198,15 +200,17 @@ def report(
     out: Path = typer.Argument(..., help="Output folder of labelsynth expand (field.pt, run.json, masks/)."),
     device: str = typer.Option("auto", help="auto | cpu | cuda"),
     mesh_format: Optional[str] = typer.Option(None, "--mesh-format", help="ply | glb (default: as before)."),
-    mm_per_unit: Optional[float] = typer.Option(None, "--mm-per-unit", min=0.0, help="Millimetres per scene unit (default: as before)."),
+    mm_per_unit: Optional[float] = typer.Option(None, "--mm-per-unit", help="Millimetres per scene unit, > 0 (default: as before)."),
     loo: bool = typer.Option(True, "--loo/--no-loo", help="Refit the semantic stage without each annotated frame (the honest test)."),
 ) -> None:
     """Rebuild OUT/report.json, OUT/report.html and the labelled mesh from a finished expand."""
     from .pipeline import rebuild_report
+    from .rundir import RunFolder
 
     rep = rebuild_report(out, device=device, mesh_format=mesh_format, mm_per_unit=mm_per_unit, loo=loo)
     flagged = rep["summary"]["flagged"]
-    typer.echo(f"wrote {out / 'report.json'} and {out / 'report.html'}")
+    run = RunFolder(out)
+    typer.echo(f"wrote {run.report_json} and {run.report_html}")
     typer.echo(f"{len(rep['frames'])} frames, {len(flagged)} flagged" + (f": {', '.join(flagged)}" if flagged else ""))
 
 

@@ -1,23 +1,23 @@
 """`labelsynth expand` as a library call: capture in, consistent masks and a dataset out.
 
-The output folder is built under ``OUT.partial`` and renamed to OUT only when everything is
-written (``outdir.building``), so an interrupted run never leaves an OUT that looks complete.
+The output folder (``rundir.RunFolder``) is built under ``OUT.partial`` and renamed to OUT only
+when everything is written (``outdir.building``), so an interrupted run never leaves an OUT that
+looks complete. Every option is checked (``options.ExpandOptions.check``) and every input file
+(``capture.check``) before OUT.partial exists and before the first training step.
 """
 
 from __future__ import annotations
 
-import json
-import math
 import shutil
 import time
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import torch
 import yaml
 
-from . import __version__
 from .capture import check_capture, load_capture
 from .capture.model import Capture
 from .device import pick_device
@@ -25,21 +25,16 @@ from .errors import LabelsynthError
 from .export import LabelsWriter, write_masks_png
 from .geometry.sdf import SDFField
 from .geometry.training import RayBank, train_geometry
+from .options import DeviceChoice, ExpandOptions, LabelMode, MeshFormat, positive_number
 from .outdir import building, check_out
 from .progress import console, track
-from .recipe import Recipe, load_recipe
-from .render.field import SemanticField
-from .semantics.training import (
-    BakedRays,
-    LabelledFrame,
-    bake_semantic_rays,
-    make_semantic_head,
-    train_leave_one_out,
-    train_semantic,
-)
-
-LABEL_MODES = ("annotations", "predictions", "both")
-FIELD_FILE = "field.pt"
+from .recipe import Recipe
+from .render.field import FittedField
+from .render.renderer import FieldRenderer
+from .rundir import RunFolder, RunInfo
+from .semantics.fit import HeadFit, fit_head, leave_one_out_heads, scaled_config
+from .semantics.head import SemanticHead
+from .semantics.training import BakedRays, LabelledFrame, bake_semantic_rays
 
 
 @dataclass
@@ -47,15 +42,16 @@ class ExpandResult:
     out: Path
     frames: list[str]
     annotated: list[str]
-    labels: str
+    labels: LabelMode
     seconds: dict[str, float] = field(default_factory=dict)
     geometry: dict = field(default_factory=dict)
     semantic: dict = field(default_factory=dict)
 
     def summary(self) -> str:
+        run = RunFolder(self.out)
         total = sum(self.seconds.values())
         return (
-            f"{len(self.frames)} masks in {self.out / 'masks'}; dataset {self.out / 'labels.h5'}; "
+            f"{len(self.frames)} masks in {run.masks_dir}; dataset {run.labels_path}; "
             f"labels={self.labels}; {total:.0f} s "
             f"(geometry {self.seconds.get('geometry', 0):.0f} s, semantics {self.seconds.get('semantics', 0):.0f} s, "
             f"render {self.seconds.get('render', 0):.0f} s"
@@ -63,29 +59,38 @@ class ExpandResult:
         )
 
 
-def resolve_label_mode(capture: Capture, labels: str | None) -> str:
+@dataclass
+class FieldFit:
+    """Both stages' result on one capture: the field, the rays its head learnt from (the
+    report's leave-one-out heads reuse them) and timing/quality statistics."""
+
+    field: FittedField
+    baked: BakedRays
+    stats: dict[str, Any]
+
+
+def resolve_label_mode(capture: Capture, labels: LabelMode | str | None) -> LabelMode:
     """The contract: default ``both`` when both folders exist, else whichever exists."""
-    if labels is not None and labels not in LABEL_MODES:
-        raise LabelsynthError(f"--labels must be one of {', '.join(LABEL_MODES)}, not '{labels}'")
     has_a, has_p = capture.has_annotations, capture.has_predictions
     if labels is None:
         if has_a and has_p:
-            return "both"
+            return LabelMode.BOTH
         if has_a:
-            return "annotations"
+            return LabelMode.ANNOTATIONS
         if has_p:
-            return "predictions"
+            return LabelMode.PREDICTIONS
         raise LabelsynthError(f"{capture.root}: no annotations/ or predictions/ masks to learn from")
-    if labels in ("annotations", "both") and not has_a:
+    labels = LabelMode.parse(labels, "--labels")
+    if labels in (LabelMode.ANNOTATIONS, LabelMode.BOTH) and not has_a:
         raise LabelsynthError(f"{capture.root / 'annotations'}: --labels {labels} needs expert masks, none found")
-    if labels in ("predictions", "both") and not has_p:
+    if labels in (LabelMode.PREDICTIONS, LabelMode.BOTH) and not has_p:
         raise LabelsynthError(f"{capture.root / 'predictions'}: --labels {labels} needs automatic masks, none found")
     return labels
 
 
 def labelled_frames(
     capture: Capture,
-    mode: str,
+    mode: LabelMode | str,
     recipe: Recipe,
     *,
     exclude: set[str] = frozenset(),
@@ -97,17 +102,18 @@ def labelled_frames(
     ``predictions`` / ``annotations`` replace the capture's own masks (e.g. perturbed ones in
     the benchmark); a frame missing from a given dict has no mask of that kind.
     """
+    mode = LabelMode.parse(mode, "labels")
     cams = capture.unit_cameras()
     out = []
     for i, frame in enumerate(capture.frames):
         if frame.name in exclude:
             continue
         mask, weight, expert = None, 1.0, False
-        if mode in ("annotations", "both"):
+        if mode in (LabelMode.ANNOTATIONS, LabelMode.BOTH):
             mask = annotations.get(frame.name) if annotations is not None else capture.load_annotation(i)
-            weight = recipe.semantic.expert_weight if mode == "both" else 1.0
+            weight = recipe.semantic.expert_weight if mode == LabelMode.BOTH else 1.0
             expert = mask is not None
-        if mask is None and mode in ("predictions", "both"):
+        if mask is None and mode in (LabelMode.PREDICTIONS, LabelMode.BOTH):
             mask = predictions.get(frame.name) if predictions is not None else capture.load_prediction(i)
             weight = 1.0
         if mask is not None:
@@ -123,8 +129,9 @@ def fit_geometry(
     frames: list[int] | None = None,
     seed: int = 0,
     progress: bool = True,
-) -> tuple[SemanticField, dict]:
-    """Stage 1 on the capture's images (all frames, or the given indices); no semantics yet."""
+) -> tuple[FittedField, dict]:
+    """Stage 1 on the capture's images (all frames, or the given indices): a field without a
+    head, its geometry frozen (the paper's stage 2 starts from it), and its statistics."""
     torch.manual_seed(seed)
     np.random.seed(seed)
     geo = recipe.geometry
@@ -142,37 +149,11 @@ def fit_geometry(
     grid, gstats = train_geometry(sdf, bank, geo, seed=seed, progress=progress)
     for p in sdf.parameters():
         p.requires_grad_(False)  # the paper's stage 2: geometry frozen
-    sem = SemanticField(sdf, None, grid, capture.classes, capture.normalization, recipe, device)
-    return sem, {**vars(gstats), "init_shape": init_shape}
-
-
-def fit_field(
-    capture: Capture,
-    recipe: Recipe,
-    labels: str,
-    device: torch.device,
-    *,
-    seed: int = 0,
-    progress: bool = True,
-) -> tuple[SemanticField, dict]:
-    """Both stages of the paper on one capture; returns the field and timing/quality stats."""
-    t0 = time.time()
-    sem, gstats = fit_geometry(capture, recipe, device, seed=seed, progress=progress)
-    t1 = time.time()
-    sstats = fit_semantics(sem, labelled_frames(capture, labels, recipe), seed=seed, progress=progress)
-    t2 = time.time()
-    return sem, {"seconds": {"geometry": t1 - t0, "semantics": t2 - t1}, "geometry": gstats, "semantic": sstats}
-
-
-def _scaled_semantic(cfg, fraction: float):
-    """The semantic stage's config with its steps and epochs scaled (the report's refits)."""
-    if fraction == 1.0:
-        return cfg
-    return replace(cfg, iterations=max(1, math.ceil(cfg.iterations * fraction)), min_epochs=cfg.min_epochs * fraction)
+    return FittedField(sdf, grid, capture.classes, capture.normalization, recipe), {**vars(gstats), "init_shape": init_shape}
 
 
 def fit_semantics(
-    sem: SemanticField,
+    fitted: FittedField,
     frames: list[LabelledFrame],
     *,
     exclude: set[str] = frozenset(),
@@ -180,127 +161,147 @@ def fit_semantics(
     seed: int = 0,
     progress: bool = True,
     steps_fraction: float = 1.0,
-) -> dict:
-    """(Re)train the semantic head on frozen geometry from the given labelled frames.
+) -> HeadFit:
+    """A fresh semantic head trained on the field's frozen geometry from the labelled frames
+    (``semantics.fit.fit_head`` with the field's recipe); the field is not changed: use
+    ``fitted.with_head(fit.head)``.
 
-    Pass ``baked`` (from an earlier call's ``sem.baked``) with ``exclude`` to leave frames out
-    without re-sampling the rays: leave-one-out then costs only the head's training.
-    ``steps_fraction`` scales the head's steps and epochs (the report's refits: ``report.loo_fraction``).
+    Pass ``baked`` (an earlier fit's ``baked``) with ``exclude`` to leave frames out without
+    re-sampling the rays. ``steps_fraction`` scales the head's steps and epochs.
     """
-    recipe = sem.recipe
-    cfg = _scaled_semantic(recipe.semantic, steps_fraction)
+    recipe = fitted.recipe
+    return fit_head(fitted.sdf, fitted.grid, fitted.classes, recipe.semantic, recipe.geometry.march_steps, frames,
+                    baked=baked, exclude=exclude, seed=seed, progress=progress, steps_fraction=steps_fraction)
+
+
+def fit_field(
+    capture: Capture,
+    recipe: Recipe,
+    labels: LabelMode | str,
+    device: torch.device,
+    *,
+    seed: int = 0,
+    progress: bool = True,
+) -> FieldFit:
+    """Both stages of the paper on one capture."""
+    t0 = time.time()
+    geometry, gstats = fit_geometry(capture, recipe, device, seed=seed, progress=progress)
+    t1 = time.time()
+    fit = fit_semantics(geometry, labelled_frames(capture, labels, recipe), seed=seed, progress=progress)
+    t2 = time.time()
+    stats = {"seconds": {"geometry": t1 - t0, "semantics": t2 - t1}, "geometry": gstats, "semantic": vars(fit.stats)}
+    return FieldFit(geometry.with_head(fit.head), fit.baked, stats)
+
+
+def leave_one_out_heads_of(
+    fitted: FittedField,
+    capture: Capture,
+    mode: LabelMode | str,
+    names: list[str],
+    *,
+    baked: BakedRays | None = None,
+    seed: int = 0,
+    progress: bool = False,
+) -> dict[str, SemanticHead]:
+    """The report's leave-one-view-out heads (``semantics.fit.leave_one_out_heads``): one fresh
+    head per named frame, trained without it for ``report.loo_fraction`` of the semantic
+    stage's steps, on the rays of the full fit (``baked``; baked here, as the fit baked them,
+    for a field loaded from disk)."""
+    recipe = fitted.recipe
     if baked is None:
-        baked = bake_semantic_rays(
-            sem.sdf, sem.grid, frames, sem.classes, recipe.semantic, recipe.geometry.march_steps, seed=seed, progress=progress
-        )
-        sem.baked = baked
-    if exclude:
-        baked = baked.without(set(exclude))
-        if len(baked) == 0:
-            raise LabelsynthError("no labelled pixels left after leaving out " + ", ".join(sorted(exclude)))
-    head = make_semantic_head(sem.sdf, sem.classes, cfg)
-    stats = train_semantic(head, baked, sem.classes, cfg, seed=seed, progress=progress)
-    sem.head = head
-    return vars(stats)
+        baked = bake_semantic_rays(fitted.sdf, fitted.grid, labelled_frames(capture, mode, recipe), fitted.classes,
+                                   recipe.semantic, recipe.geometry.march_steps, seed=seed, progress=progress)
+    cfg = scaled_config(recipe.semantic, recipe.report.loo_fraction)
+    return leave_one_out_heads(fitted.sdf, fitted.classes, cfg, baked, names, seed=seed, progress=progress)
 
 
 def render_outputs(
-    sem: SemanticField,
+    view: FieldRenderer,
     capture: Capture,
-    out: Path,
+    run: RunFolder,
     *,
-    labels: str,
+    labels: LabelMode,
     recipe_name: str,
     progress: bool = True,
 ) -> dict[str, np.ndarray]:
     """masks/*.png and labels.h5 for every frame at its input resolution; returns the masks."""
     cams = capture.unit_cameras()
     annotated = [f.annotation_path is not None for f in capture.frames]
+    classes = capture.classes
     masks: dict[str, np.ndarray] = {}
-    recipe_text = yaml.safe_dump(sem.recipe.to_dict(), sort_keys=False)
+    recipe_text = yaml.safe_dump(view.field.recipe.to_dict(), sort_keys=False)
     with LabelsWriter(
-        out / "labels.h5",
+        run.labels_path,
         n_frames=len(capture),
-        classes=capture.classes,
+        classes=classes,
         source=str(capture.root),
         recipe=recipe_text,
-        attrs={"labels": labels, "recipe_name": recipe_name},
+        attrs={"labels": labels.value, "recipe_name": recipe_name},
     ) as writer:
         for i in track(range(len(capture)), "rendering masks", enabled=progress):
             frame = capture.frames[i]
-            r = sem.render(cams[i])
-            write_masks_png(out / "masks", frame.name, r.mask, capture.classes)
+            r = view.render(cams[i])
+            write_masks_png(run.masks_dir, frame.name, r.mask, classes)
             writer.add(frame.name, capture.load_image(i), r.mask, r.confidence.astype(np.float16), annotated[i])
             masks[frame.name] = r.mask
     return masks
 
 
-def _write_run_json(out: Path, capture_dir: str | Path, mode: str, annotated_frames: list[str] | None,
-                    recipe: Recipe, device: torch.device, seed: int, stats: dict) -> None:
-    """OUT/run.json: what ran and how long each phase took (``labelsynth report`` reads it back)."""
-    run = {
-        "version": __version__,
-        "capture": str(Path(capture_dir).resolve()),
-        "labels": mode,
-        "annotated_frames": annotated_frames,
-        "recipe": recipe.to_dict(),
-        "device": str(device),
-        "seed": seed,
-        **stats,
-    }
-    (out / "run.json").write_text(json.dumps(run, indent=2, default=float))
-
-
 def expand(
     capture_dir: str | Path,
     out: str | Path,
+    options: ExpandOptions | None = None,
     *,
-    labels: str | None = None,
-    recipe: str | Path = "default",
-    device: str = "auto",
-    seed: int = 0,
-    overrides: list[str] | None = None,
     force: bool = False,
     progress: bool = True,
-    report: bool = True,
-    mesh_format: str = "ply",
-    mm_per_unit: float | None = None,
-    annotated_frames: str | list[str] | None = None,
+    **values: Any,
 ) -> ExpandResult:
     """Fit the semantic field to a capture and write OUT (the README's "The output folder").
 
-    Every input is checked first (``capture.check``): a bad file fails in seconds, with all
-    the others, before any training and before OUT or OUT.partial exist. The report reads
-    annotations and predictions whatever ``labels`` is, so only ``report=False`` narrows the
-    check to the masks that teach. ``annotated_frames``: which frames' annotations teach
-    (``load_capture``); run.json records the chosen names so ``labelsynth report`` keeps them.
+    ``options``, or its fields as keywords (``labels=``, ``recipe=``, ``device=``, ``seed=``,
+    ``overrides=``, ``annotated_frames=``, ``report=``, ``mesh_format=``, ``mm_per_unit=``:
+    ``options.ExpandOptions``). Every option and every input is checked first (``capture.check``):
+    a bad one fails in seconds, with all the others, before any training and before OUT or
+    OUT.partial exist. The report reads annotations and predictions whatever ``labels`` is,
+    so only ``report=False`` narrows the check to the masks that teach. ``annotated_frames``:
+    which frames' annotations teach (``load_capture``); run.json records the chosen names so
+    ``labelsynth report`` keeps them.
     """
-    capture = load_capture(capture_dir, annotated_frames=annotated_frames)
-    mode = resolve_label_mode(capture, labels)
-    rec = load_recipe(recipe, overrides)
+    opts = options.replace(**values) if options is not None else ExpandOptions(**values)
+    rec = opts.check()
     out = Path(out)
     check_out(out, force)
-    check = check_capture(capture, labels="both" if report else mode)
+    capture = load_capture(capture_dir, annotated_frames=opts.annotated_frames)
+    mode = resolve_label_mode(capture, opts.labels)
+    check = check_capture(capture, labels="both" if opts.report else mode.value)
     check.raise_if_problems()
-    dev = pick_device(device)
+    dev = pick_device(opts.device.value)
     with building(out, force=force) as partial:
+        run = RunFolder(partial)
         if progress:
             console.print(f"[bold]labelsynth[/] {check.summary()}")
             console.print(f"[bold]labelsynth[/] {len(capture)} frames, labels={mode}, recipe={rec.name}, device={dev}")
-        sem, stats = fit_field(capture, rec, mode, dev, seed=seed, progress=progress)
+        fit = fit_field(capture, rec, mode, dev, seed=opts.seed, progress=progress)
+        stats = fit.stats
         stats["seconds"] = {"check": check.seconds, **stats["seconds"]}
-        sem.save(partial / FIELD_FILE)
+        run.save_field(fit.field)
+        view = FieldRenderer(fit.field)
         t0 = time.time()
-        masks = render_outputs(sem, capture, partial, labels=mode, recipe_name=rec.name, progress=progress)
+        masks = render_outputs(view, capture, run, labels=mode, recipe_name=rec.name, progress=progress)
         stats["seconds"]["render"] = time.time() - t0
-        if report:
+        report_seconds = None
+        if opts.report:
             t0 = time.time()
-            rep = _report(partial, capture, sem, masks, mode, seed=seed, progress=progress, mesh_format=mesh_format,
-                          mm_per_unit=mm_per_unit)
+            rep = _report(run, capture, view, masks, mode, baked=fit.baked, seed=opts.seed, progress=progress,
+                          mesh_format=opts.mesh_format.value, mm_per_unit=opts.mm_per_unit)
             stats["seconds"]["report"] = time.time() - t0
-            stats["report_seconds"] = rep["summary"]["phase_seconds"]
-        chosen = None if annotated_frames is None else [f.name for f in capture.frames if f.annotation_path is not None]
-        _write_run_json(partial, capture_dir, mode, chosen, rec, dev, seed, stats)
+            report_seconds = rep["summary"]["phase_seconds"]
+        chosen = None if opts.annotated_frames is None else [f.name for f in capture.frames if f.annotation_path is not None]
+        run.write_run(RunInfo(
+            capture=str(Path(capture_dir).resolve()), labels=mode.value, annotated_frames=chosen, recipe=rec.to_dict(),
+            device=str(dev), seed=opts.seed, seconds=stats["seconds"], geometry=stats["geometry"],
+            semantic=stats["semantic"], report_seconds=report_seconds,
+        ))
     return ExpandResult(
         out=out,
         frames=capture.names,
@@ -312,60 +313,19 @@ def expand(
     )
 
 
-class LeaveOneOutRefit:
-    """The report's leave-one-view-out: ``refit(name)`` puts in ``sem.head`` a fresh head trained
-    without that frame, geometry frozen, for ``report.loo_fraction`` of the semantic stage's steps.
+def _report(run: RunFolder, capture: Capture, view: FieldRenderer, masks: dict[str, np.ndarray], mode: LabelMode, *,
+            baked: BakedRays | None, seed: int, progress: bool, **kwargs) -> dict:
+    """build_report with what it needs from the orchestration: the masks that taught, and how
+    to get the leave-one-out heads."""
+    from .report.build import build_report
 
-    ``prepare(names)`` trains the heads of all the named frames at once on the full fit's baked
-    rays (``semantics.training.train_leave_one_out``: one batch and one position lookup per step
-    for all of them); a name not prepared is refitted alone, re-baking the other frames' labels
-    when the full fit's rays are not there (a field loaded from disk).
-    """
+    fitted = view.field
+    taught = {f.name: f.mask for f in labelled_frames(capture, mode, fitted.recipe)}
 
-    def __init__(self, sem: SemanticField, capture: Capture, mode: str, seed: int = 0) -> None:
-        self.sem, self.capture, self.mode, self.seed = sem, capture, mode, seed
-        self.fraction = sem.recipe.report.loo_fraction
-        self.heads: dict = {}
+    def loo_heads(names: list[str]) -> dict[str, SemanticHead]:
+        return leave_one_out_heads_of(fitted, capture, mode, names, baked=baked, seed=seed, progress=progress)
 
-    def prepare(self, names: list[str], progress: bool = False) -> None:
-        sem, baked = self.sem, self.sem.baked
-        if baked is None:
-            return
-        # frames with baked rays whose absence leaves some; the others are refitted alone
-        # (which trains on every ray, or says which frame left nothing)
-        per_frame = torch.bincount(baked.frame_of_ray, minlength=len(baked.frame_names))
-        index = {n: i for i, n in enumerate(baked.frame_names)}
-        todo = [n for n in names if n not in self.heads and n in index]
-        if not todo or any(int(per_frame[index[n]]) == len(baked) for n in todo):
-            return
-        cfg = _scaled_semantic(sem.recipe.semantic, self.fraction)
-        self.heads.update(train_leave_one_out(lambda: make_semantic_head(sem.sdf, sem.classes, cfg), sem.baked,
-                                              sem.classes, cfg, todo, seed=self.seed, progress=progress))
-
-    def __call__(self, name: str) -> None:
-        sem = self.sem
-        if name in self.heads:
-            sem.head = self.heads.pop(name)
-        elif sem.baked is not None:
-            fit_semantics(sem, [], exclude={name}, baked=sem.baked, seed=self.seed, progress=False,
-                          steps_fraction=self.fraction)
-        else:
-            fit_semantics(sem, labelled_frames(self.capture, self.mode, sem.recipe, exclude={name}), seed=self.seed,
-                          progress=False, steps_fraction=self.fraction)
-
-
-def refit_without(sem: SemanticField, capture: Capture, mode: str, seed: int = 0) -> LeaveOneOutRefit:
-    """The report's refit callable (``LeaveOneOutRefit``)."""
-    return LeaveOneOutRefit(sem, capture, mode, seed)
-
-
-def _report(out: Path, capture: Capture, sem: SemanticField, masks: dict[str, np.ndarray], mode: str, *,
-            seed: int, progress: bool, **kwargs) -> dict:
-    """build_report with what it needs from the orchestration: the masks that taught, a refit."""
-    from .report import build_report
-
-    taught = {f.name: f.mask for f in labelled_frames(capture, mode, sem.recipe)}
-    return build_report(out, capture, sem, masks, mode, taught=taught, refit=refit_without(sem, capture, mode, seed),
+    return build_report(run, capture, view, masks, mode.value, taught=taught, loo_heads=loo_heads,
                         progress=progress, **kwargs)
 
 
@@ -380,40 +340,31 @@ def rebuild_report(
 ) -> dict:
     """Write report.json/html (and the mesh) of a finished OUT again, from OUT/field.pt and OUT/masks.
 
-    Without ``mesh_format`` / ``mm_per_unit`` the previous report's choices are kept.
+    Without ``mesh_format`` / ``mm_per_unit`` the previous report's choices are kept. The
+    leave-one-out heads are trained as expand trains them (the labelled rays baked again with
+    the run's seed), so they match the first report's.
     """
-    from .report import REPORT_JSON, read_field_masks
-
-    out_dir = Path(out_dir)
-    run_path, field_path = out_dir / "run.json", out_dir / "field.pt"
-    for p in (run_path, field_path):
-        if not p.is_file():
-            raise LabelsynthError(f"{p}: not found (is {out_dir} the output of labelsynth expand?)")
-    try:
-        run = json.loads(run_path.read_text())
-        capture_dir, mode = run["capture"], run["labels"]
-    except (json.JSONDecodeError, KeyError, TypeError) as exc:
-        raise LabelsynthError(f"{run_path}: not a labelsynth run file ({exc})") from exc
-    previous = {}
-    if (out_dir / REPORT_JSON).is_file():
-        try:
-            previous = json.loads((out_dir / REPORT_JSON).read_text()).get("summary", {}) or {}
-        except json.JSONDecodeError:
-            previous = {}
-    prev_mesh = previous.get("mesh") or {}
+    dev = pick_device(DeviceChoice.parse(device, "--device").value)
+    if mesh_format is not None:
+        mesh_format = MeshFormat.parse(mesh_format, "--mesh-format").value
+    if mm_per_unit is not None:
+        mm_per_unit = positive_number(mm_per_unit, "--mm-per-unit")
+    run = RunFolder(out_dir)
+    info, capture = run.open_capture()  # with the run's choice of annotated frames
+    prev_mesh = run.read_report_summary().get("mesh") or {}
     if mesh_format is None:
-        had_glb = "mesh.glb" in prev_mesh.get("files", []) or (out_dir / "mesh.glb").exists()
+        had_glb = run.mesh_path("glb").name in (prev_mesh.get("files") or []) or run.mesh_path("glb").exists()
         mesh_format = "glb" if had_glb else "ply"
     if mm_per_unit is None:
         mm_per_unit = (prev_mesh.get("areas") or {}).get("mm_per_unit")
-    capture = load_capture(capture_dir, annotated_frames=run.get("annotated_frames"))  # as the run chose
-    sem = SemanticField.load(field_path, pick_device(device))
+    fitted = run.load_field(dev)
     # The report reads every mask and, for flagged frames, images: check them all before the
     # leave-one-out refits, and that the capture's classes are still the field's.
-    check_capture(capture, labels="both", class_tables={str(field_path): sem.classes}).raise_if_problems()
-    masks = read_field_masks(out_dir, capture.names)
-    return _report(out_dir, capture, sem, masks, mode, seed=int(run.get("seed", 0)), progress=progress,
-                   mesh_format=mesh_format, mm_per_unit=mm_per_unit, loo=loo)
+    check_capture(capture, labels="both", class_tables={str(run.field_path): fitted.classes}).raise_if_problems()
+    run.check_fits(fitted, capture)
+    masks = run.read_masks(capture.names)
+    return _report(run, capture, FieldRenderer(fitted), masks, LabelMode.parse(info.labels, "labels"), baked=None,
+                   seed=info.seed, progress=progress, mesh_format=mesh_format, mm_per_unit=mm_per_unit, loo=loo)
 
 
 def score_against_truth(out: str | Path, truth_dir: str | Path, classes, exclude: set[str] = frozenset()):
@@ -425,14 +376,14 @@ def score_against_truth(out: str | Path, truth_dir: str | Path, classes, exclude
     from .capture.masks import read_mask
     from .evaluation.metrics import score_frames
 
-    out, truth_dir = Path(out), Path(truth_dir)
-    names = sorted(p.stem for p in (out / "masks").glob("*.png") if p.stem not in exclude)
+    run, truth_dir = RunFolder(out), Path(truth_dir)
+    names = sorted(p.stem for p in run.masks_dir.glob("*.png") if p.stem not in exclude)
     preds, truths = [], []
     for name in names:
         truth_path = truth_dir / f"{name}.png"
         if not truth_path.exists():
             raise LabelsynthError(f"{truth_path}: no truth mask for frame '{name}'")
-        preds.append(read_mask(out / "masks" / f"{name}.png", None, classes))
+        preds.append(read_mask(run.mask_path(name), None, classes))
         truths.append(read_mask(truth_path, None, classes))
     return score_frames(preds, truths, classes, names)
 
@@ -451,15 +402,14 @@ def demo(
     """Synthesise a capture, expand it from its annotations, and score it against the truth."""
     from .evaluation.synth import SynthConfig, synthesize
 
+    options = ExpandOptions(labels="annotations", recipe=recipe, device=device, overrides=overrides or [])
+    options.check()  # before anything is made
     out = Path(out)
     synth_dir = out / "synthetic"
     if synth_dir.exists():
         shutil.rmtree(synth_dir)
     made = synthesize(synth_dir, SynthConfig(frames=frames, annotated=min(4, frames // 3), width=width, height=height), progress=progress)
-    result = expand(
-        made.capture_dir, out / "expanded", labels="annotations", recipe=recipe, device=device,
-        overrides=overrides, force=True, progress=progress,
-    )
+    result = expand(made.capture_dir, out / "expanded", options, force=True, progress=progress)
     capture = load_capture(made.capture_dir)
     scores = score_against_truth(result.out, made.truth_dir, capture.classes, exclude=set(result.annotated))
     lines = [

@@ -19,7 +19,8 @@ from labelsynth.classes import ClassInfo, ClassMap
 from labelsynth.errors import LabelsynthError
 from labelsynth.evaluation.metrics import score_frames
 from labelsynth.pipeline import expand, fit_semantics
-from labelsynth.render.field import SemanticField
+from labelsynth.render.renderer import FieldRenderer
+from labelsynth.rundir import load_field
 from labelsynth.semantics.training import LabelledFrame
 
 # All tests using the shared tiny run go to one xdist worker, so it is fitted once.
@@ -36,17 +37,18 @@ def test_two_class_scene_is_recovered_on_unseen_frames(tiny_expanded):
     """Refit the semantic stage on the fitted geometry with binary masks of the good annotations."""
     run = tiny_expanded
     cap = load_capture(run.capture_dir)
-    sem = SemanticField.load(run.out / "field.pt", torch.device("cpu"))
-    sem = dataclasses.replace(sem, classes=TWO_CLASSES, head=None)
+    fitted = load_field(run.out / "field.pt", torch.device("cpu"))
+    fitted = dataclasses.replace(fitted, classes=TWO_CLASSES, head=None)
     cams = cap.unit_cameras()
     frames = [
         LabelledFrame(cams[i], _binary(cap.load_annotation(i)), 1.0, f.name)
         for i, f in enumerate(cap.frames) if f.name in run.good
     ]
-    fit_semantics(sem, frames, progress=False)
+    fitted = fitted.with_head(fit_semantics(fitted, frames, progress=False).head)
     unseen = [i for i, f in enumerate(cap.frames) if f.annotation_path is None]
     assert len(unseen) == 4
-    preds = [sem.render(cams[i]).mask for i in unseen]
+    view = FieldRenderer(fitted)
+    preds = [view.render(cams[i]).mask for i in unseen]
     truths = [_binary(cv2.imread(str(run.truth_dir / f"{cap.frames[i].name}.png"), cv2.IMREAD_UNCHANGED)) for i in unseen]
     scores = score_frames(preds, truths, TWO_CLASSES)
     dice = {row["class"]: row["dice"] for row in scores.table()}
@@ -103,7 +105,7 @@ def test_bad_label_mode_is_a_clear_error(tiny_expanded, tmp_path):
     shutil.rmtree(capture / "predictions")
     with pytest.raises(LabelsynthError, match="needs automatic masks"):
         expand(capture, tmp_path / "o", labels="predictions", progress=False)
-    with pytest.raises(LabelsynthError, match="--labels must be one of"):
+    with pytest.raises(LabelsynthError, match="--labels must be one of annotations, predictions, both, not 'everything'"):
         expand(tiny_expanded.capture_dir, tmp_path / "o", labels="everything", progress=False)
 
 
@@ -127,21 +129,25 @@ def test_cli_no_report_writes_masks_and_no_report(tiny_expanded, tmp_path):
     assert "report" not in json.loads((out / "run.json").read_text())["seconds"]
 
 
-@pytest.mark.xdist_group("tiny_expanded")
-def test_leave_one_out_refit_trains_a_fresh_head_for_a_fraction_of_the_steps(tiny_expanded):
-    """report.loo_fraction: the refit's head starts afresh (not the full head warm-started)
-    and trains that fraction of the semantic stage's steps."""
-    from labelsynth.pipeline import labelled_frames
+def test_leave_one_out_heads_are_fresh_heads_trained_for_a_fraction_of_the_steps(tiny_expanded):
+    """report.loo_fraction: each left-out frame's head starts afresh (not the full head warm-started)
+    and trains that fraction of the semantic stage's steps; the field is never changed."""
+    from labelsynth.pipeline import labelled_frames, leave_one_out_heads_of
+    from labelsynth.semantics.fit import scaled_config
 
     capture = load_capture(tiny_expanded.capture_dir)
-    sem = SemanticField.load(tiny_expanded.out / "field.pt", torch.device("cpu"))
-    frames = labelled_frames(capture, "annotations", sem.recipe)
-    full_iters = sem.recipe.semantic.iterations
-    full = fit_semantics(sem, frames, progress=False)
-    full_head = sem.head
-    part = fit_semantics(sem, [], exclude={tiny_expanded.good[0]}, baked=sem.baked, progress=False,
-                         steps_fraction=sem.recipe.report.loo_fraction)
-    assert full["iterations"] == full_iters
-    assert part["iterations"] == math.ceil(full_iters * sem.recipe.report.loo_fraction) < full_iters
-    assert sem.head is not full_head
-    assert part["rays"] < full["rays"]
+    fitted = load_field(tiny_expanded.out / "field.pt", torch.device("cpu"))
+    recipe = fitted.recipe
+    frames = labelled_frames(capture, "annotations", recipe)
+    full = fit_semantics(fitted, frames, progress=False)
+    part = fit_semantics(fitted, [], exclude={tiny_expanded.good[0]}, baked=full.baked, progress=False,
+                         steps_fraction=recipe.report.loo_fraction)
+    assert full.stats.iterations == recipe.semantic.iterations
+    assert part.stats.iterations == math.ceil(recipe.semantic.iterations * recipe.report.loo_fraction) < full.stats.iterations
+    assert part.stats.rays < full.stats.rays and part.head is not full.head
+    assert scaled_config(recipe.semantic, recipe.report.loo_fraction).iterations == part.stats.iterations
+    head_before = fitted.head
+    names = list(tiny_expanded.good[:2])
+    heads = leave_one_out_heads_of(fitted, capture, "annotations", names, baked=full.baked)
+    assert list(heads) == names and len({id(h) for h in heads.values()}) == 2
+    assert fitted.head is head_before and all(h is not head_before for h in heads.values())

@@ -10,8 +10,9 @@ from pathlib import Path
 import pytest
 import yaml
 
+from labelsynth.config import choices_of
 from labelsynth.errors import RecipeError
-from labelsynth.recipe import RECIPE_DIR, Recipe, available_recipes, choices_of, load_recipe
+from labelsynth.recipe import RECIPE_DIR, Recipe, available_recipes, load_recipe
 
 REPO = Path(__file__).resolve().parent.parent
 
@@ -95,8 +96,8 @@ def test_bad_choice_is_one_line(override: str, key: str) -> None:
 
 
 def test_choices_come_from_the_types() -> None:
-    from labelsynth.recipe import RenderConfig, SemanticConfig
-    from labelsynth.semantics.head import CLASS_WEIGHTINGS, DECISION_RULES
+    from labelsynth.render.config import RenderConfig
+    from labelsynth.semantics.config import CLASS_WEIGHTINGS, DECISION_RULES, SemanticConfig
 
     assert choices_of(SemanticConfig, "class_weighting") == CLASS_WEIGHTINGS
     assert choices_of(RenderConfig, "decision") == DECISION_RULES
@@ -124,7 +125,7 @@ def test_recipes_load_and_reject_typos():
     assert r.geometry.iterations == 7 and r.semantic.use_position is False
     with pytest.raises(RecipeError, match="unknown key 'iteratons'"):
         load_recipe("fast", ["geometry.iteratons=7"])
-    with pytest.raises(RecipeError, match="expected a int"):
+    with pytest.raises(RecipeError, match="expected a whole number"):
         load_recipe("fast", ["geometry.iterations=many"])
     with pytest.raises(RecipeError, match="unknown recipe"):
         load_recipe("no-such-recipe")
@@ -137,3 +138,88 @@ def test_loo_fraction_out_of_range_is_one_line(value):
     with pytest.raises(RecipeError, match=r"report\.loo_fraction") as err:
         load_recipe("default", [f"report.loo_fraction={value}"])
     assert "\n" not in str(err.value)
+
+
+def _numeric_fields(cls: type, where: str):
+    """(dotted key, owning dataclass, field name) of every int/float field of the recipe tree."""
+    from typing import get_type_hints
+
+    hints = get_type_hints(cls)
+    for f in dataclasses.fields(cls):
+        tp = hints[f.name]
+        if dataclasses.is_dataclass(tp):
+            yield from _numeric_fields(tp, f"{where}.{f.name}")
+        elif tp in (int, float):
+            yield f"{where}.{f.name}", cls, f.name
+
+
+def test_every_number_of_every_config_has_a_range_that_holds_its_default():
+    from labelsynth.config import range_of
+
+    fields = list(_numeric_fields(Recipe, "recipe"))
+    assert len(fields) > 50
+    for key, cls, name in fields:
+        limits = range_of(cls, name)
+        assert limits is not None, f"{key} has no range"
+        assert limits.contains(getattr(cls(), name)), f"{key}: its default is out of its own range {limits}"
+
+
+@pytest.mark.parametrize("override, message", [
+    ("geometry.iterations=-5", "fast.yaml.geometry.iterations: -5 is not >= 1"),
+    ("geometry.iterations=0", "fast.yaml.geometry.iterations: 0 is not >= 1"),
+    ("semantic.lr=0", "fast.yaml.semantic.lr: 0.0 is not > 0"),
+    ("geometry.train_scale=1.5", "fast.yaml.geometry.train_scale: 1.5 is not in (0, 1]"),
+    ("semantic.tissue_weight_floor=-0.1", "fast.yaml.semantic.tissue_weight_floor: -0.1 is not in [0, 1]"),
+    ("geometry.adam_beta2=1", "fast.yaml.geometry.adam_beta2: 1.0 is not in [0, 1)"),
+    ("geometry.sdf.log2_table=40", "fast.yaml.geometry.sdf.log2_table: 40 is not in [4, 24]"),
+    ("render.subdivide=9", "fast.yaml.render.subdivide: 9 is not in [0, 4]"),
+    ("semantic.lr=.nan", "fast.yaml.semantic.lr: expected a finite number, got nan"),
+    ("geometry.eikonal_weight=.inf", "fast.yaml.geometry.eikonal_weight: expected a finite number, got inf"),
+    ("geometry.iterations=true", "fast.yaml.geometry.iterations: expected a whole number, got True"),
+    ("geometry.iterations=[1, 2]", "fast.yaml.geometry.iterations: expected a whole number, got [1, 2]"),
+    ("geometry.sdf.max_resolution=8", "fast.yaml.geometry.sdf.max_resolution: 8 is below base_resolution 16"),
+    ("geometry=3", "fast.yaml.geometry: expected a mapping of keys to values, got int"),
+    ("semantic.class_weighting=[a]", "fast.yaml.semantic.class_weighting: expected a text value, got ['a']"),
+    ("semantic.lr=[", "--set semantic.lr=[: the value is not valid YAML"),
+    ("semantic.lr", "--set semantic.lr: not of the form section.key=value"),
+    ("semantic..lr=3", "--set semantic..lr=3: not of the form section.key=value"),
+    ("geometry.iterations.x=3", "--set geometry.iterations.x=3: 'iterations' is not a section"),
+])
+def test_bad_values_are_one_line_naming_the_key(override, message):
+    with pytest.raises(RecipeError) as err:
+        load_recipe("fast", ["geometry.iterations=7", override])
+    text = str(err.value)
+    assert text.startswith(message) and "\n" not in text, text
+
+
+def test_bad_recipe_files_are_one_line(tmp_path):
+    listed = tmp_path / "list.yaml"
+    listed.write_text("- geometry\n- semantic\n")
+    scalar = tmp_path / "scalar.yaml"
+    scalar.write_text("42\n")
+    broken = tmp_path / "broken.yaml"
+    broken.write_text("geometry: [\n")
+    binary = tmp_path / "binary.yaml"
+    binary.write_bytes(b"\xff\xfe\x00geometry")
+    folder = tmp_path / "recipes.d"
+    folder.mkdir()
+    cases = [
+        (listed, f"{listed}: a recipe is a mapping of sections (geometry:, semantic:, ...), this file holds a list"),
+        (scalar, f"{scalar}: a recipe is a mapping of sections"),
+        (broken, f"{broken}: not valid YAML"),
+        (binary, f"{binary}: cannot read the recipe"),
+        (folder, f"{folder}: is a folder, not a recipe file"),
+        (tmp_path / "gone.yaml", f"{tmp_path / 'gone.yaml'}: recipe file not found"),
+    ]
+    for path, start in cases:
+        with pytest.raises(RecipeError) as err:
+            load_recipe(path)
+        assert str(err.value).startswith(start) and "\n" not in str(err.value), str(err.value)
+
+
+def test_a_recipe_from_a_mapping_is_checked_like_a_file():
+    """``Recipe.from_dict`` is the public builder (field.pt's recorded recipe goes through it)."""
+    r = Recipe.from_dict({"name": "x", "semantic": {"dropout": 0.25}}, "here")
+    assert r.semantic.dropout == 0.25 and r.geometry == Recipe().geometry
+    with pytest.raises(RecipeError, match=r"^here\.semantic\.dropout: 1\.5 is not in \[0, 1\)$"):
+        Recipe.from_dict({"semantic": {"dropout": 1.5}}, "here")

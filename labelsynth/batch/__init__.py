@@ -3,7 +3,8 @@ merged dataset. Importing this package does not import Ray (only ``run_batch`` d
 
 from .discover import BatchError, CaptureJob, discover
 from .merge import DATASET_FILE, merge_labels
-from .run import BatchResult, ExpandOptions, run_batch
+from ..options import ExpandOptions
+from .run import BatchResult, run_batch
 from .table import BatchRow, rich_table
 
 __all__ = ["DATASET_FILE", "BatchError", "BatchResult", "BatchRow", "CaptureJob", "ExpandOptions", "discover",

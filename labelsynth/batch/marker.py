@@ -12,7 +12,7 @@
 - the labelsynth version.
 
 A capture is skipped when its marker's key equals the key computed now and its output folder
-has the files a finished ``expand`` writes. Anything else (no marker, a different key, a
+is a finished ``expand`` output (``rundir.RunFolder.is_finished``). Anything else (no marker, a different key, a
 folder removed by hand, a run killed between the rename and the marker) redoes it.
 """
 
@@ -27,10 +27,9 @@ from typing import Any
 
 from .. import __version__
 from ..outdir import write_text_atomic
+from ..rundir import RunFolder
 
 MARKERS_DIR = "markers"
-OUTPUT_FILES = ("run.json", "labels.h5", "field.pt")
-REPORT_FILES = ("report.json",)
 
 
 def _sha(data: Any) -> str:
@@ -79,12 +78,6 @@ def marker_path(out: Path, name: str) -> Path:
     return Path(out) / MARKERS_DIR / f"{name}.json"
 
 
-def output_complete(folder: Path, report: bool) -> bool:
-    """The files a finished ``expand`` leaves (the folder exists only once it is renamed)."""
-    needed = OUTPUT_FILES + (REPORT_FILES if report else ())
-    return folder.is_dir() and (folder / "masks").is_dir() and all((folder / f).is_file() for f in needed)
-
-
 def is_done(out: Path, name: str, marker: Marker, output: Path, report: bool) -> bool:
     """Complete output and a stored marker with the same key: nothing to redo."""
     path = marker_path(out, name)
@@ -92,7 +85,7 @@ def is_done(out: Path, name: str, marker: Marker, output: Path, report: bool) ->
         stored = json.loads(path.read_text())
     except (OSError, json.JSONDecodeError):
         return False
-    return isinstance(stored, dict) and stored.get("key") == marker.key and output_complete(output, report)
+    return isinstance(stored, dict) and stored.get("key") == marker.key and RunFolder(output).is_finished(report)
 
 
 def write_marker(out: Path, name: str, marker: Marker) -> Path:

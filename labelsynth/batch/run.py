@@ -16,15 +16,16 @@ the OOM killer, a lost node) is a system failure that Ray retries ``retries`` ti
 
 from __future__ import annotations
 
-import dataclasses
 import os
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 from ..errors import CheckError, LabelsynthError
+from ..options import DeviceChoice, ExpandOptions
 from ..progress import make_progress
+from ..rundir import RunFolder
 from .discover import BatchError, CaptureJob, discover
 from .marker import Marker, clear_marker, is_done, make_marker, write_marker
 from .merge import merge_labels
@@ -33,31 +34,6 @@ from .table import BatchRow, counts, read_quality, write_batch_html, write_batch
 CAPTURES_DIR = "captures"
 THREAD_VARS = ("OMP_NUM_THREADS", "MKL_NUM_THREADS", "OPENBLAS_NUM_THREADS")
 DEFAULT_CPUS = 4  # per capture, capped to the largest node
-
-
-@dataclass
-class ExpandOptions:
-    """What every capture's ``expand`` gets (the CLI's expand options)."""
-
-    labels: str | None = None
-    recipe: str = "default"
-    device: str = "auto"
-    seed: int = 0
-    overrides: list[str] = field(default_factory=list)
-    annotated_frames: str | None = None
-    report: bool = True
-    mesh_format: str = "ply"
-    mm_per_unit: float | None = None
-
-    def marker_options(self) -> dict[str, Any]:
-        """The options that change a capture's output (the recipe is hashed on its own)."""
-        return {"labels": self.labels, "seed": self.seed, "annotated_frames": self.annotated_frames,
-                "report": self.report, "mesh_format": self.mesh_format, "mm_per_unit": self.mm_per_unit}
-
-    def expand_kwargs(self) -> dict[str, Any]:
-        return {"labels": self.labels, "recipe": self.recipe, "device": self.device, "seed": self.seed,
-                "overrides": list(self.overrides), "annotated_frames": self.annotated_frames,
-                "report": self.report, "mesh_format": self.mesh_format, "mm_per_unit": self.mm_per_unit}
 
 
 @dataclass
@@ -105,7 +81,7 @@ def _set_threads(threads: int) -> None:
     cv2.setNumThreads(threads)
 
 
-def expand_capture(capture: str, output: str, out_root: str, name: str, kwargs: dict[str, Any],
+def expand_capture(capture: str, output: str, out_root: str, name: str, options: ExpandOptions,
                    marker: dict[str, Any], threads: int) -> dict[str, Any]:
     """One capture, inside a Ray worker: expand, then the resume marker. User errors come back
     as a ``failed`` result (not an exception) so Ray never retries them."""
@@ -114,7 +90,7 @@ def expand_capture(capture: str, output: str, out_root: str, name: str, kwargs: 
     _set_threads(threads)
     t0 = time.time()
     try:
-        result = expand(capture, output, force=True, progress=False, **kwargs)
+        result = expand(capture, output, options, force=True, progress=False)
     except LabelsynthError as exc:
         return {"status": "failed", "reason": one_line(exc), "seconds": time.time() - t0}
     write_marker(Path(out_root), name, Marker(**marker))
@@ -213,25 +189,20 @@ def run_batch(
     """Expand every capture of ``source`` (a root folder or a list file) into OUT/captures/<name>/,
     skip those already done with the same inputs and recipe, write OUT/batch.json/html and
     OUT/dataset.h5. Returns the table; failed captures are rows, not exceptions."""
-    from ..pipeline import LABEL_MODES
-    from ..recipe import load_recipe
-
     t_start = time.time()
-    options = dataclasses.replace(options) if options is not None else ExpandOptions()  # the caller's stays as given
+    options = options if options is not None else ExpandOptions()
     out = Path(out)
     if retries < 0:
         raise BatchError(f"--retries must be >= 0, not {retries}")
-    if options.labels is not None and options.labels not in LABEL_MODES:
-        raise BatchError(f"--labels must be one of {', '.join(LABEL_MODES)}, not '{options.labels}'")
-    if options.device not in ("auto", "cpu", "cuda"):
-        raise BatchError(f"unknown device '{options.device}' (use auto, cpu or cuda)")
-    if options.device == "cuda" and not gpus_per_capture:
+    if options.device == DeviceChoice.CUDA and not gpus_per_capture:
         raise BatchError("--device cuda needs --gpus-per-capture: Ray gives a task a GPU only when it reserves one")
     if out.exists() and not out.is_dir():
         raise BatchError(f"{out}: exists and is not a folder")
+    options = options.replace(recipe=_recipe_arg(options.recipe))  # the caller's stays as given
+    # every option (the recipe: keys, types, ranges) fails before discovery and before Ray starts;
+    # the device is the workers' to find
+    recipe = options.check(device=False).to_dict()
     jobs = discover(source, out)
-    options.recipe = _recipe_arg(options.recipe)
-    recipe = load_recipe(options.recipe, options.overrides).to_dict()  # a bad recipe fails before Ray starts
     (out / CAPTURES_DIR).mkdir(parents=True, exist_ok=True)
 
     rows: dict[str, BatchRow] = {}
@@ -263,7 +234,7 @@ def run_batch(
                                      cpus=cpus_per_capture, gpus=gpus_per_capture, retries=retries)
     ordered = [rows[j.name] for j in jobs]
 
-    finished = [(r.name, Path(r.output) / "labels.h5") for r in ordered if r.status in ("done", "skipped")]
+    finished = [(r.name, RunFolder(r.output).labels_path) for r in ordered if r.status in ("done", "skipped")]
     dataset, dataset_error = None, ""
     try:
         dataset = merge_labels(out, finished)
@@ -271,7 +242,7 @@ def run_batch(
         dataset_error = one_line(exc)
         (out / "dataset.h5").unlink(missing_ok=True)
     info = {"source": str(Path(source).resolve()), "out": str(out.resolve()), "recipe": options.recipe,
-            "overrides": list(options.overrides), "labels": options.labels or "auto", "report": options.report,
+            "overrides": list(options.overrides), "labels": str(options.labels or "auto"), "report": options.report,
             "ray": ray_address or "local", "seconds": round(time.time() - t_start, 1),
             "dataset": str(dataset) if dataset else "", "dataset_error": dataset_error}
     write_batch_json(out, ordered, info)
@@ -286,9 +257,8 @@ def _run_tasks(todo: list[tuple[CaptureJob, Marker]], out: Path, options: Expand
     try:
         node_cpus, node_gpus = _largest_node(ray)
         ncpu = check_resources(cpus, gpus, node_cpus, node_gpus)
-        kwargs = options.expand_kwargs()
-        if gpus == 0 and kwargs["device"] == "auto":
-            kwargs["device"] = "cpu"  # no GPU reserved: never share one behind Ray's back
+        if gpus == 0 and options.device == DeviceChoice.AUTO:
+            options = options.replace(device=DeviceChoice.CPU)  # no GPU reserved: never share one behind Ray's back
         env = {v: str(ncpu) for v in THREAD_VARS}
         remote = ray.remote(expand_capture).options(
             num_cpus=ncpu, num_gpus=gpus, max_retries=retries, retry_exceptions=False,
@@ -298,7 +268,7 @@ def _run_tasks(todo: list[tuple[CaptureJob, Marker]], out: Path, options: Expand
         for job, marker in todo:
             output = out / CAPTURES_DIR / job.name
             ref = remote.remote(str(job.path.resolve()), str(output.resolve()), str(out.resolve()), job.name,
-                                kwargs, marker_fields(marker), ncpu)
+                                options, marker_fields(marker), ncpu)
             pending[ref] = (job, output)
         bar.update(task, status=f"{len(pending)} running or queued")
         while pending:

@@ -15,7 +15,9 @@ from rich.table import Table
 
 from .. import __version__
 from ..classes import WOUND_BED
+from ..errors import LabelsynthError
 from ..outdir import write_text_atomic
+from ..rundir import RunFolder
 
 BATCH_JSON = "batch.json"
 BATCH_HTML = "batch.html"
@@ -59,15 +61,14 @@ class BatchRow:
 def read_quality(output: Path, row: BatchRow) -> None:
     """Fill frames, time, wound-bed agreement / leave-one-out Dice and flagged frames from a
     finished output's run.json and report.json (absent with --no-report: left empty)."""
-    try:
-        run = json.loads((output / "run.json").read_text())
-        if row.seconds is None:
-            row.seconds = float(sum((run.get("seconds") or {}).values()))
-    except (OSError, json.JSONDecodeError, TypeError, ValueError):
-        pass
-    try:
-        summary = json.loads((output / "report.json").read_text()).get("summary") or {}
-    except (OSError, json.JSONDecodeError, AttributeError):
+    run = RunFolder(output)
+    if row.seconds is None:
+        try:
+            row.seconds = run.read_run().total_seconds
+        except LabelsynthError:
+            pass
+    summary = run.read_report_summary()
+    if not summary:
         return
     row.frames = summary.get("num_frames", row.frames)
     row.wound_bed_agreement = (summary.get("median_agreement") or {}).get(WOUND_BED)

@@ -15,6 +15,7 @@ The spec is the same on the command line and in the library:
 from __future__ import annotations
 
 from collections.abc import Sequence
+from typing import Any
 
 from ..errors import CaptureError
 
@@ -31,23 +32,13 @@ def select_frames(spec: FrameSpec, names: Sequence[str], where: str = "--annotat
     """
     names = list(names)
     n = len(names)
-    if isinstance(spec, str):
-        text = spec.strip()
-        head, sep, arg = text.partition(":")
-        if sep and head in ("every", "spread"):
-            k = _positive(arg, f"{where}: '{text}'")
-            if head == "every":
-                picked = list(range(0, n, k))
-            else:
-                if k > n:
-                    raise CaptureError(f"{where}: '{text}' asks for {k} frames but the capture has {n}")
-                picked = spread_indices(n, k)
-            return [names[i] for i in picked]
-        tokens: list[str | int] = [t.strip() for t in text.split(",")]
-        if any(t == "" for t in tokens):
-            raise CaptureError(f"{where}: empty frame name in '{spec}' (use names, indices, every:K or spread:N)")
-    else:
-        tokens = list(spec)  # may be empty: no annotation teaches
+    rule, tokens = _parse(spec, where)
+    if rule == "every":
+        return [names[i] for i in range(0, n, tokens)]
+    if rule == "spread":
+        if tokens > n:
+            raise CaptureError(f"{where}: '{spec.strip()}' asks for {tokens} frames but the capture has {n}")
+        return [names[i] for i in spread_indices(n, tokens)]
     index_of = {name: i for i, name in enumerate(names)}
     picked_set: set[int] = set()
     for token in tokens:
@@ -63,6 +54,28 @@ def select_frames(spec: FrameSpec, names: Sequence[str], where: str = "--annotat
             raise CaptureError(f"{where}: frame index {i} out of range (the capture has {n} frames, 0..{n - 1})")
         picked_set.add(i)
     return [names[i] for i in sorted(picked_set)]
+
+
+def check_frame_spec(spec: FrameSpec, where: str = "--annotated-frames") -> None:
+    """What can be checked of ``spec`` without the capture (its syntax), so that a run of many
+    captures fails before the first one; names and indices are checked by ``select_frames``."""
+    _parse(spec, where)
+
+
+def _parse(spec: FrameSpec, where: str) -> tuple[str, Any]:
+    """("every" | "spread", K) or ("frames", the tokens): the spec's syntax, checked."""
+    if isinstance(spec, str):
+        text = spec.strip()
+        head, sep, arg = text.partition(":")
+        if sep and head in ("every", "spread"):
+            return head, _positive(arg, f"{where}: '{text}'")
+        tokens = [t.strip() for t in text.split(",")]
+        if any(t == "" for t in tokens):
+            raise CaptureError(f"{where}: empty frame name in '{spec}' (use names, indices, every:K or spread:N)")
+        return "frames", tokens
+    if isinstance(spec, Sequence) and all(isinstance(t, (str, int)) and not isinstance(t, bool) for t in spec):
+        return "frames", list(spec)  # may be empty: no annotation teaches
+    raise CaptureError(f"{where}: expected names, indices, every:K or spread:N, not {type(spec).__name__}")
 
 
 def spread_indices(n: int, k: int) -> list[int]:

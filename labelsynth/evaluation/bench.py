@@ -34,6 +34,8 @@ from ..device import pick_device
 from ..errors import LabelsynthError
 from ..pipeline import fit_geometry, fit_semantics, labelled_frames
 from ..progress import console, track
+from ..render.renderer import FieldRenderer
+from ..semantics.head import SemanticHead
 from ..recipe import load_recipe
 from .fusion import DEFAULT_CUTOFF_DEG, DEFAULT_STRIDE, fusion_baseline, load_mesh_unit
 from .metrics import WOUND_BED, Scores, score_frames
@@ -44,7 +46,6 @@ if TYPE_CHECKING:
     import trimesh
 
     from ..recipe import Recipe
-    from ..render.field import SemanticField
 
 METHODS = ("2d", "3d2d", "field")
 METHOD_NAMES = {"2d": "2D", "3d2d": "3D/2D", "field": "Field"}
@@ -112,9 +113,10 @@ def _score_rows(method: str, labels: str, perturbation: str, scores: Scores) -> 
     return rows
 
 
-def _render_field(sem: SemanticField, capture: Capture, names: Sequence[str], progress: bool) -> dict[str, np.ndarray]:
+def _render_field(view: FieldRenderer, head: SemanticHead, capture: Capture, names: Sequence[str],
+                  progress: bool) -> dict[str, np.ndarray]:
     cams = dict(zip(capture.names, capture.unit_cameras()))
-    return {n: sem.render(cams[n]).mask for n in track(list(names), "field render", enabled=progress)}
+    return {n: view.render(cams[n], head).mask for n in track(list(names), "field render", enabled=progress)}
 
 
 @dataclass
@@ -258,23 +260,25 @@ def _load_inputs(capture: Capture, truth_dir: str | Path, meths: list[str], mesh
 
 
 def _fit_geometries(capture: Capture, rec: Recipe, dev: torch.device, kept: list[str], *, refit_half: bool,
-                    seed: int, progress: bool, timing: dict[str, float]) -> tuple[SemanticField, SemanticField]:
+                    seed: int, progress: bool, timing: dict[str, float]) -> tuple[FieldRenderer, FieldRenderer]:
     """The geometry on all frames, and on the kept half when the half-frames row refits it
     (the paper halved the training images); every row then refits only the cheap semantics."""
     t0 = time.perf_counter()
-    sem, _ = fit_geometry(capture, rec, dev, seed=seed, progress=progress)
+    fitted, _ = fit_geometry(capture, rec, dev, seed=seed, progress=progress)
+    sem = FieldRenderer(fitted)
     timing["geometry"] = time.perf_counter() - t0
     sem_half = sem
     if refit_half:
         t0 = time.perf_counter()
         index = {n: i for i, n in enumerate(capture.names)}
-        sem_half, _ = fit_geometry(capture, rec, dev, frames=[index[n] for n in kept], seed=seed, progress=progress)
+        half, _ = fit_geometry(capture, rec, dev, frames=[index[n] for n in kept], seed=seed, progress=progress)
+        sem_half = FieldRenderer(half)
         timing["geometry_half_frames"] = time.perf_counter() - t0
     return sem, sem_half
 
 
 def _run_perturbation(bench: _BenchRows, pert: str, meths: list[str], kept: list[str],
-                      geometry: SemanticField | None, rec: Recipe, *, seed: int, cutoff_deg: float,
+                      geometry: FieldRenderer | None, rec: Recipe, *, seed: int, cutoff_deg: float,
                       stride: int) -> None:
     """One perturbation's rows: perturb the predictions once, then score each method on them
     (2D scores them as they are, 3D/2D votes them onto a mesh, the field learns from them)."""
@@ -300,21 +304,21 @@ def _run_perturbation(bench: _BenchRows, pert: str, meths: list[str], kept: list
     if "field" in meths:
         t0 = time.perf_counter()
         frames = labelled_frames(inp.capture, "predictions", rec, predictions=masks)
-        fit_semantics(geometry, frames, seed=seed, progress=bench.progress)
-        out = _render_field(geometry, inp.capture, inp.scored, bench.progress)
+        fit = fit_semantics(geometry.field, frames, seed=seed, progress=bench.progress)
+        out = _render_field(geometry, fit.head, inp.capture, inp.scored, bench.progress)
         bench.seconds["field"] += time.perf_counter() - t0
         bench.add("field", "predictions", pert, out, "field")
 
 
-def _run_annotation_field(bench: _BenchRows, sem: SemanticField, rec: Recipe, *, seed: int) -> str | None:
+def _run_annotation_field(bench: _BenchRows, sem: FieldRenderer, rec: Recipe, *, seed: int) -> str | None:
     """The field taught by the expert annotations alone (the paper's upper reference), or the
     note saying why that row is missing."""
     capture = bench.inputs.capture
     if not capture.has_annotations:
         return "the capture has no annotations/, so there is no annotation-trained field row"
     t0 = time.perf_counter()
-    fit_semantics(sem, labelled_frames(capture, "annotations", rec), seed=seed, progress=bench.progress)
-    out = _render_field(sem, capture, bench.inputs.scored, bench.progress)
+    fit = fit_semantics(sem.field, labelled_frames(capture, "annotations", rec), seed=seed, progress=bench.progress)
+    out = _render_field(sem, fit.head, capture, bench.inputs.scored, bench.progress)
     bench.seconds["field"] += time.perf_counter() - t0
     bench.add("field", "annotations", "none", out, "field (annotations)")
     return None

@@ -37,7 +37,7 @@ from ..render.surface import SurfaceCaster
 
 if TYPE_CHECKING:  # pragma: no cover
     from ..capture.model import Capture, SceneNormalization
-    from ..render.field import SemanticField
+    from ..render.renderer import FieldRenderer
 
 DEFAULT_CUTOFF_DEG = 75.0
 DEFAULT_STRIDE = 2
@@ -276,7 +276,7 @@ def load_mesh_unit(path: str | Path, normalization: "SceneNormalization") -> tri
 
 
 def fusion_baseline(
-    source: "SemanticField | trimesh.Trimesh",
+    source: "FieldRenderer | trimesh.Trimesh",
     capture: "Capture",
     masks: Mapping[str, np.ndarray],
     *,
@@ -287,8 +287,8 @@ def fusion_baseline(
 ) -> dict[str, np.ndarray]:
     """The 3D/2D baseline on a capture: vote ``masks`` onto the mesh, render ``frames``.
 
-    ``source`` is a fitted field (its marching-cubes mesh and caster are reused) or a mesh in
-    unit-cube coordinates (see ``load_mesh_unit``). ``frames`` defaults to every frame.
+    ``source`` is a fitted field's renderer (its marching-cubes mesh and caster are reused) or a
+    mesh in unit-cube coordinates (see ``load_mesh_unit``). ``frames`` defaults to every frame.
     """
     if isinstance(source, trimesh.Trimesh):
         mesh, caster = source, SurfaceCaster(source)

@@ -12,19 +12,18 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import TYPE_CHECKING
 
 import numpy as np
 import torch
 import trimesh
 
 from ..classes import ClassMap
+from ..options import MeshFormat
+from ..render.renderer import FieldRenderer
+from ..rundir import MESH_STEM
 from ..semantics.head import decide_labels
 
-if TYPE_CHECKING:
-    from ..render.field import SemanticField
-
-MESH_FORMATS = ("ply", "glb")
+MESH_FORMATS = MeshFormat.choices()
 WOUND_BED = "wound_bed"
 
 
@@ -119,14 +118,14 @@ def class_areas(
     return MeshAreas(by_class, wound_bed, float(face_area.sum()), mm_per_unit, counts)
 
 
-def vertex_class_ids(sem: "SemanticField", vertices_unit: np.ndarray) -> np.ndarray:
+def vertex_class_ids(view: FieldRenderer, vertices_unit: np.ndarray) -> np.ndarray:
     """Class id per vertex from the semantic head at the surface (unit-cube coordinates),
     decided by the same rule as the rendered masks."""
     if len(vertices_unit) == 0:
         return np.zeros(0, dtype=np.uint8)
-    probs = torch.softmax(sem.logits_at(vertices_unit), dim=-1).cpu().numpy()
-    index = decide_labels(probs, sem.classes, sem.recipe.render.decision)
-    return sem.classes.index_to_id_lut()[index]
+    classes = view.field.classes
+    probs = torch.softmax(view.logits_at(vertices_unit), dim=-1).cpu().numpy()
+    return classes.index_to_id_lut()[decide_labels(probs, classes, view.config.decision)]
 
 
 def labelled_mesh(vertices: np.ndarray, faces: np.ndarray, vertex_ids: np.ndarray, classes: ClassMap) -> trimesh.Trimesh:
@@ -137,12 +136,12 @@ def labelled_mesh(vertices: np.ndarray, faces: np.ndarray, vertex_ids: np.ndarra
 
 
 def export_labelled_mesh(
-    sem: "SemanticField",
+    view: FieldRenderer,
     out_dir: str | Path,
     *,
     mesh_format: str = "ply",
     mm_per_unit: float | None = None,
-    stem: str = "mesh",
+    stem: str = MESH_STEM,
 ) -> MeshExport:
     """Write ``OUT/mesh.ply`` (always) and ``OUT/mesh.glb`` (``mesh_format="glb"``) in world units.
 
@@ -152,16 +151,17 @@ def export_labelled_mesh(
     if mesh_format not in MESH_FORMATS:
         raise ValueError(f"mesh format must be one of {', '.join(MESH_FORMATS)}, not {mesh_format!r}")
     out_dir = Path(out_dir)
-    unit = sem.mesh()
+    classes = view.field.classes
+    unit = view.mesh()
     v_unit = np.asarray(unit.vertices, dtype=np.float64)
     faces = np.asarray(unit.faces, dtype=np.int64)
-    ids = vertex_class_ids(sem, v_unit)
-    v_world = sem.normalization.to_world(v_unit) if len(v_unit) else v_unit
-    mesh = labelled_mesh(v_world, faces, ids, sem.classes)
+    ids = vertex_class_ids(view, v_unit)
+    v_world = view.field.normalization.to_world(v_unit) if len(v_unit) else v_unit
+    mesh = labelled_mesh(v_world, faces, ids, classes)
     paths = [out_dir / f"{stem}.ply"]
     mesh.export(paths[0])
     if mesh_format == "glb":
         paths.append(out_dir / f"{stem}.glb")
         mesh.export(paths[1])
-    areas = class_areas(v_world, faces, ids, sem.classes, mm_per_unit)
+    areas = class_areas(v_world, faces, ids, classes, mm_per_unit)
     return MeshExport(paths, areas, len(v_world), len(faces))

@@ -17,21 +17,30 @@ The outer field has no semantic head: whatever it explains is background.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Annotated
 
 import torch
 from torch import nn
 from torch.nn import functional as F
 
+from ..config import Count, HashTableLog2, Range
 from .encoding import HashGridEncoding, sh_deg2
 
 
 @dataclass
 class OuterConfig:
-    samples: int = 16  # per ray, uniform in disparity between the cube's exit and infinity
-    levels: int = 8
-    log2_table: int = 15
-    max_resolution: int = 256
-    hidden: int = 32
+    """The NeRF beyond the unit cube (recipe section ``geometry.sdf.outer``)."""
+
+    samples: Count = 16
+    """Samples per ray, uniform in disparity between the cube's exit and infinity."""
+    levels: Count = 8
+    """Hash-grid levels."""
+    log2_table: HashTableLog2 = 15
+    """log2 of each level's hash-table size."""
+    max_resolution: Annotated[int, Range(16)] = 256
+    """Cells per side of the finest level (the coarsest has 16)."""
+    hidden: Count = 32
+    """Width of its network."""
 
 
 def contract(x: torch.Tensor) -> torch.Tensor:

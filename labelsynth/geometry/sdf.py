@@ -8,33 +8,52 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
-from typing import Literal
+from typing import Annotated, Literal
 
 import torch
 from torch import nn
 from torch.nn import functional as F
 
+from ..config import Count, HashTableLog2, OpenUnitInterval, Range
 from .background import OuterBackground, OuterConfig
 from .encoding import HashGridEncoding, sh_deg2
 
 
 @dataclass
 class SDFConfig:
-    levels: int = 12
-    features_per_level: int = 2
-    log2_table: int = 17
-    base_resolution: int = 16
-    max_resolution: int = 1024
-    hidden: int = 64
-    feature_dim: int = 15  # geometry feature handed to the colour and semantic heads
-    color_hidden: int = 64
-    init_shape: Literal["auto", "sphere", "plane"] = "auto"  # see SDFField.initialise_shape
-    init_radius: float = 0.5  # sphere initialisation: radius in the unit cube
-    init_variance: float = 0.3  # inv_s = exp(10 * variance)
-    # env: a colour per direction beyond the cube; outer: also a NeRF over contracted space
-    # outside it (geometry.background), for a table or a room close behind the object
+    """The SDF, its colour head and the background (recipe section ``geometry.sdf``)."""
+
+    levels: Count = 12
+    """Hash-grid levels."""
+    features_per_level: Count = 2
+    log2_table: HashTableLog2 = 17
+    """log2 of each level's hash-table size."""
+    base_resolution: Count = 16
+    """Cells per side of the coarsest level."""
+    max_resolution: Count = 1024
+    """Cells per side of the finest level."""
+    hidden: Count = 64
+    """Width of the SDF network."""
+    feature_dim: Count = 15
+    """Geometry feature handed to the colour and semantic heads."""
+    color_hidden: Count = 64
+    """Width of the colour network."""
+    init_shape: Literal["auto", "sphere", "plane"] = "auto"
+    """Shape the SDF starts as (``SDFField.initialise_shape``; auto: from the cameras)."""
+    init_radius: OpenUnitInterval = 0.5
+    """Sphere initialisation: radius in the unit cube."""
+    init_variance: Annotated[float, Range(0.0, 2.0, low_open=True)] = 0.3
+    """Initial NeuS sharpness: inv_s = exp(10 * variance)."""
     background: Literal["env", "outer"] = "outer"
+    """env: a colour per direction beyond the cube; outer: also a NeRF over contracted space
+    outside it (geometry.background), for a table or a room close behind the object."""
     outer: OuterConfig = field(default_factory=OuterConfig)
+    """The outer NeRF (``background: outer``)."""
+
+    def validate(self) -> None:
+        """Relations between fields (``config.build_config`` calls it)."""
+        if self.max_resolution < self.base_resolution:
+            raise ValueError(f"max_resolution: {self.max_resolution} is below base_resolution {self.base_resolution}")
 
 
 # A plane is a useful start only where the cameras see its front face squarely: beyond 60

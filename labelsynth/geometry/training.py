@@ -6,7 +6,6 @@ import math
 import time
 from collections.abc import Sequence
 from dataclasses import dataclass
-from typing import TYPE_CHECKING
 
 import cv2
 import numpy as np
@@ -24,10 +23,8 @@ from .sampling import (
     neus_weights,
     ray_box,
 )
+from .config import GeometryConfig
 from .sdf import SDFField
-
-if TYPE_CHECKING:  # the recipe imports this package's sdf module: no import at run time
-    from ..recipe import GeometryConfig
 
 # A ray whose surface leaves less than this much light through shows no background.
 BACKGROUND_VISIBLE = 1e-2

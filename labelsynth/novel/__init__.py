@@ -17,11 +17,15 @@ from pathlib import Path
 
 import numpy as np
 
-from .source import AugmentError, check_expanded, load_expanded
+from ..errors import LabelsynthError
 
 __all__ = ["augment", "AugmentResult", "AugmentError"]
 
 AUGMENT_DIR = "augment"
+
+
+class AugmentError(LabelsynthError, ValueError):
+    """An option or input that ``augment`` cannot use (one line, names what is wrong)."""
 
 
 @dataclass
@@ -59,8 +63,11 @@ def augment(
     ``force`` replaces an existing OUT/augment. The same seed gives the same poses.
     """
     from ..device import pick_device
+    from ..options import DeviceChoice
     from ..outdir import building, check_out
     from ..progress import console, track
+    from ..render.renderer import FieldRenderer
+    from ..rundir import RunFolder
     from .poses import parse_spread, path_points, sample_poses
     from .views import METHODS, RealFrames, render_view
     from .write import AugmentWriter, world_camera
@@ -70,34 +77,37 @@ def augment(
     if method not in METHODS:
         raise AugmentError(f"--method must be one of {', '.join(METHODS)}, not {method!r}")
     sp = parse_spread(spread)
-    out, _, _ = check_expanded(out_dir, capture)
-    target = out / AUGMENT_DIR
+    dev = pick_device(DeviceChoice.parse(device, "--device").value)
+    run = RunFolder(out_dir)
+    _, cap = run.open_capture(capture)
+    target = run.path / AUGMENT_DIR
     check_out(target, force)
     t0 = time.perf_counter()
-    ex = load_expanded(out, pick_device(device), capture)
-    cap, sem = ex.capture, ex.field
+    fitted = run.load_field(dev)
+    run.check_fits(fitted, cap)
+    view = FieldRenderer(fitted)
     cams = cap.unit_cameras()
     images = [cap.load_image(i) for i in track(range(len(cap)), "loading images", enabled=progress)]
-    real = RealFrames(sem, cams, images, progress=progress)
+    real = RealFrames(view, cams, images, progress=progress)
     del images
     seconds = {"load": time.perf_counter() - t0}
     t0 = time.perf_counter()
     rng = np.random.default_rng(seed)
-    poses = sample_poses(int(views), rng, path_points(cams, sem.render_caster()), sp, sem.render_caster(), real)
+    poses = sample_poses(int(views), rng, path_points(cams, view.render_caster()), sp, view.render_caster(), real)
     seconds["poses"] = time.perf_counter() - t0
     t0 = time.perf_counter()
     width = max(4, len(str(views - 1)))
     valid = []
     real_world = {f.name: f.camera for f in cap.frames}
     with building(target, force=force) as partial:
-        writer = AugmentWriter(partial, len(poses.cameras), ex.labels_path, cap.classes, cap.normalization, real_world,
+        writer = AugmentWriter(partial, len(poses.cameras), run.labels_path, cap.classes, cap.normalization, real_world,
                                {"augment_seed": seed, "augment_method": method, "augment_spread": asdict(sp),
                                 "augment_rejected": poses.rejected})
         try:
             for k, cam in enumerate(track(poses.cameras, "rendering novel views", enabled=progress)):
-                view = render_view(sem, real, cam, method=method)
-                writer.add_view(f"novel_{k:0{width}d}", view, cam)
-                valid.append(view.valid_fraction)
+                novel = render_view(view, real, cam, method=method)
+                writer.add_view(f"novel_{k:0{width}d}", novel, cam)
+                valid.append(novel.valid_fraction)
             seconds["render"] = time.perf_counter() - t0
             writer.finish({
                 "views": len(poses.cameras),

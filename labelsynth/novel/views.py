@@ -3,7 +3,7 @@
 Why image-based blending and not the field's colour head: the geometry was fitted on rays from
 frames downscaled ``geometry.train_scale`` times, so the colour head is smooth at full
 resolution, while the real frames hold every detail. Each novel pixel's ray is cast onto the
-fitted surface (the same cast that gives its label, ``SemanticField.render``); the hit point is
+fitted surface (the same cast that gives its label, ``FieldRenderer.render``); the hit point is
 projected into the real frames nearest in viewing angle, kept where a frame's own depth map
 (the same surface cast from that frame) says nothing lies in front of it, and their colours are
 blended, the smallest angle weighing most. ``benchmarks/bench_augment.py`` measures this
@@ -26,7 +26,8 @@ from torch.nn import functional as F
 from ..cameras import Camera
 from ..classes import IGNORE_ID
 from ..geometry.training import render_rays_rgb
-from ..render.field import SemanticField
+from ..render.field import FittedField
+from ..render.renderer import FieldRenderer
 
 METHODS = ("blend", "head")
 FAR = 1.0e3  # a missed ray's colour is looked up at this distance (unit cube = 2 wide): a direction
@@ -74,11 +75,11 @@ class RealFrames:
     it are compared on one surface.
     """
 
-    def __init__(self, sem: SemanticField, cameras: list[Camera], images: list[np.ndarray],
+    def __init__(self, view: FieldRenderer, cameras: list[Camera], images: list[np.ndarray],
                  cfg: BlendConfig | None = None, *, depth: list[np.ndarray] | None = None, progress: bool = False) -> None:
         from ..progress import track
 
-        self.sem = sem
+        self.view = view
         self.cfg = cfg or BlendConfig()
         self.cameras = list(cameras)
         self.images = [torch.from_numpy(np.ascontiguousarray(im.transpose(2, 0, 1))) for im in images]  # uint8
@@ -93,7 +94,7 @@ class RealFrames:
     def depth_map(self, camera: Camera) -> np.ndarray:
         """(H,W) float32 distance to the fitted surface along each pixel's ray, inf on a miss."""
         o, d = camera.rays()
-        hit, points, _ = self.sem.render_caster().first_hits(o, d)
+        hit, points, _ = self.view.render_caster().first_hits(o, d)
         dist = np.full(len(o), np.inf, np.float32)
         dist[hit] = np.linalg.norm(points[hit] - o[hit], axis=-1)
         return dist.reshape(camera.height, camera.width)
@@ -203,7 +204,7 @@ def _unit(v: np.ndarray) -> np.ndarray:
     return v / np.maximum(np.linalg.norm(v, axis=-1, keepdims=True), 1e-12)
 
 
-def render_view(sem: SemanticField, real: RealFrames, camera: Camera, *, method: str = "blend",
+def render_view(view: FieldRenderer, real: RealFrames, camera: Camera, *, method: str = "blend",
                 exclude: set[int] = frozenset()) -> NovelView:
     """Image, mask, confidence and validity of one unit-cube camera.
 
@@ -214,7 +215,7 @@ def render_view(sem: SemanticField, real: RealFrames, camera: Camera, *, method:
     if method not in METHODS:
         raise ValueError(f"method must be one of {METHODS}, not {method!r}")
     h, w = camera.height, camera.width
-    r = sem.render(camera, keep_points=True)
+    r = view.render(camera, keep_points=True)
     hit = r.hit.reshape(-1)
     points = r.points.reshape(-1, 3)
     _, dirs = camera.rays()
@@ -228,7 +229,7 @@ def render_view(sem: SemanticField, real: RealFrames, camera: Camera, *, method:
     rgb[hit_t], valid[hit_t] = on.rgb, on.seen
     rgb[~hit_t], valid[~hit_t] = off.rgb, off.seen
     if method == "head":
-        rgb = colour_head(sem, camera).reshape(-1, 3)
+        rgb = colour_head(view.field, camera).reshape(-1, 3)
     valid_np = valid.numpy().reshape(h, w)
     image = np.where(valid_np[..., None], rgb.numpy().reshape(h, w, 3).round().clip(0, 255), 0).astype(np.uint8)
     mask = np.where(valid_np, r.mask, IGNORE_ID).astype(np.uint8)
@@ -237,15 +238,15 @@ def render_view(sem: SemanticField, real: RealFrames, camera: Camera, *, method:
 
 
 @torch.no_grad()
-def colour_head(sem: SemanticField, camera: Camera, chunk: int = 8192) -> torch.Tensor:
+def colour_head(fitted: FittedField, camera: Camera, chunk: int = 8192) -> torch.Tensor:
     """(H*W,3) colours in [0,255] volume-rendered by the field's colour head (the comparison
     the benchmark makes; slow on a CPU at full resolution)."""
     o, d = camera.rays()
-    o_t = torch.from_numpy(o.astype(np.float32)).to(sem.device)
-    d_t = torch.from_numpy(d.astype(np.float32)).to(sem.device)
+    o_t = torch.from_numpy(o.astype(np.float32)).to(fitted.device)
+    d_t = torch.from_numpy(d.astype(np.float32)).to(fitted.device)
     out = []
     for s in range(0, len(o_t), chunk):
-        rgb, _, _ = render_rays_rgb(sem.sdf, sem.grid, o_t[s:s + chunk], d_t[s:s + chunk], 1.0,
-                                    sem.recipe.geometry.march_steps, train=False)
+        rgb, _, _ = render_rays_rgb(fitted.sdf, fitted.grid, o_t[s:s + chunk], d_t[s:s + chunk], 1.0,
+                                    fitted.recipe.geometry.march_steps, train=False)
         out.append(rgb.float().cpu())
     return torch.cat(out) * 255.0

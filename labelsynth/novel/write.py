@@ -62,7 +62,7 @@ class AugmentWriter:
         src = self.real.attrs
         missing = [n for n in self.real_names if n not in real_cameras]
         if missing:
-            from .source import AugmentError
+            from . import AugmentError
 
             raise AugmentError(f"{self.labels_h5}: frames {missing[:3]} are not in the capture (a different capture?)")
         extra = {k: v for k, v in src.items() if k not in RESERVED_ATTRS}
@@ -78,7 +78,7 @@ class AugmentWriter:
     def add_view(self, name: str, view, camera_unit: Camera) -> None:
         """One novel view: images/, masks/ (class ids, 255 = not seen), valid/ (0/255) and augment.h5."""
         if name in self.real_cameras:
-            from .source import AugmentError
+            from . import AugmentError
 
             raise AugmentError(f"novel view name {name!r} is also a real frame's name")
         write_image(self.folder / "images" / f"{name}.png", view.image)

@@ -6,16 +6,18 @@ import json
 import time
 from collections.abc import Callable
 from pathlib import Path
-from typing import TYPE_CHECKING
 
-import cv2
 import numpy as np
 
 from ..capture.model import Capture
 from ..classes import WOUND_BED, ClassMap
 from ..errors import LabelsynthError
 from ..export.mesh import MESH_FORMATS, export_labelled_mesh
+from ..outdir import write_text_atomic
 from ..progress import phase
+from ..render.renderer import FieldRenderer
+from ..rundir import MESH_STEM, RunFolder
+from ..semantics.head import SemanticHead
 from . import plots
 from .consistency import (
     Check,
@@ -28,11 +30,8 @@ from .consistency import (
 )
 from .html import render_html
 
-if TYPE_CHECKING:
-    from ..render.field import SemanticField
-
-REPORT_JSON = "report.json"
-REPORT_HTML = "report.html"
+# names the leave-one-out candidates -> a head per name trained without it
+LeaveOneOutHeads = Callable[[list[str]], dict[str, SemanticHead]]
 
 
 def _inputs(capture: Capture) -> tuple[dict[str, np.ndarray], dict[str, np.ndarray]]:
@@ -81,17 +80,19 @@ def _agreement_rows(names: list[str], ann: dict, pred: dict, masks: dict, classe
     return frames
 
 
-def _leave_one_out(sem: "SemanticField", capture: Capture, ann: dict, taught: dict,
-                   refit: Callable[[str], None] | None, progress: bool) -> dict[str, np.ndarray]:
-    """Step 2: each annotated frame judged by a field that did not learn from it (the honest test:
+def _leave_one_out(view: FieldRenderer, capture: Capture, ann: dict, taught: dict,
+                   loo_heads: LeaveOneOutHeads | None, progress: bool) -> dict[str, np.ndarray]:
+    """Step 2: each annotated frame judged by a head that did not learn from it (the honest test:
     a field that learnt a wrong mask agrees with it)."""
     if not ann:
         return {}
-    if refit is None:
-        raise ValueError("build_report: the leave-one-view-out needs a refit callable")
+    if loo_heads is None:
+        raise ValueError("build_report: the leave-one-view-out needs loo_heads")
     # only frames with someone else left to learn from
     candidates = [n for n in capture.names if n in ann and any(t != n for t in taught)]
-    return leave_one_out(sem, capture, candidates, refit, progress=progress)
+    if not candidates:
+        return {}
+    return leave_one_out(view, capture, loo_heads(candidates), progress=progress)
 
 
 def _flag(frames: list[dict], ann: dict, pred: dict, masks: dict, loo_masks: dict, classes: ClassMap) -> None:
@@ -159,14 +160,14 @@ def _figures(capture: Capture, report: dict, ann: dict, pred: dict, masks: dict,
 
 
 def build_report(
-    out_dir: str | Path,
+    out: RunFolder | str | Path,
     capture: Capture,
-    sem: "SemanticField",
+    view: FieldRenderer,
     masks: dict[str, np.ndarray],
     mode: str,
     *,
     taught: dict[str, np.ndarray],
-    refit: Callable[[str], None] | None = None,
+    loo_heads: LeaveOneOutHeads | None = None,
     progress: bool = True,
     mesh_format: str | None = "ply",
     mm_per_unit: float | None = None,
@@ -174,16 +175,17 @@ def build_report(
 ) -> dict:
     """Write OUT/report.json, OUT/report.html and OUT/mesh.ply (+ .glb); return the report.
 
-    ``masks`` are the field's masks by frame name (what expand wrote to OUT/masks);
-    ``taught`` the masks the field learnt from, by frame name (the caller's rule decides
-    which: ``pipeline.labelled_frames``). ``refit(name)`` retrains ``sem.head`` without
-    frame ``name`` (needed for the leave-one-view-out; the caller supplies it, so the report
-    knows nothing of how a field is fitted). ``mesh_format=None`` skips the mesh (and its
-    areas). ``loo=False`` skips the leave-one-view-out refits (then annotated frames are
-    judged by agreement only).
+    ``view`` renders the fitted field; ``masks`` are the field's masks by frame name (what
+    expand wrote to OUT/masks); ``taught`` the masks the field learnt from, by frame name (the
+    caller's rule decides which: ``pipeline.labelled_frames``). ``loo_heads(names)`` returns,
+    for each name, a head trained without that frame (needed for the leave-one-view-out; the
+    caller supplies it, so the report knows nothing of how a field is fitted); each left-out
+    frame is rendered with its own head. ``mesh_format=None`` skips the mesh (and its areas).
+    ``loo=False`` skips the leave-one-view-out refits (then annotated frames are judged by
+    agreement only).
     """
     t0 = time.time()
-    out_dir = Path(out_dir)
+    run = out if isinstance(out, RunFolder) else RunFolder(out)
     classes: ClassMap = capture.classes
     names = capture.names
     missing = [n for n in names if n not in masks]
@@ -196,7 +198,7 @@ def build_report(
         ann, pred = _inputs(capture)
         frames = _agreement_rows(names, ann, pred, masks, classes)
     with phase(seconds, "leave_one_out"):
-        loo_masks = _leave_one_out(sem, capture, ann, taught, refit, progress) if loo else {}
+        loo_masks = _leave_one_out(view, capture, ann, taught, loo_heads, progress) if loo else {}
     for f in frames:
         if f["annotated"]:
             m = loo_masks.get(f["name"])
@@ -208,7 +210,7 @@ def build_report(
     index = {n: i for i, n in enumerate(names)}
     with phase(seconds, "pairwise"):
         pairwise = pairwise_consistency(
-            sem.caster(), [cams[index[n]] for n in views], [taught[n] for n in views], classes, progress=progress,
+            view.caster(), [cams[index[n]] for n in views], [taught[n] for n in views], classes, progress=progress,
         ) if views else []
 
     _flag(frames, ann, pred, masks, loo_masks, classes)
@@ -216,7 +218,8 @@ def build_report(
     mesh_info = None
     if mesh_format is not None:
         with phase(seconds, "mesh", f"report: labelled mesh ({mesh_format})", progress):
-            mesh_info = export_labelled_mesh(sem, out_dir, mesh_format=mesh_format, mm_per_unit=mm_per_unit).to_dict()
+            mesh_info = export_labelled_mesh(view, run.path, mesh_format=mesh_format, mm_per_unit=mm_per_unit,
+                                             stem=MESH_STEM).to_dict()
     summary = _summary(capture, mode, frames, ann, pred, pairwise, mesh_info)
     for f in frames:
         f.pop("_present")
@@ -225,18 +228,6 @@ def build_report(
         figures, strips = _figures(capture, report, ann, pred, masks, loo_masks)
     summary["seconds"] = time.time() - t0
     summary["phase_seconds"] = seconds
-    (out_dir / REPORT_JSON).write_text(json.dumps(report, indent=2))
-    (out_dir / REPORT_HTML).write_text(render_html(report, figures, strips), encoding="utf-8")
+    write_text_atomic(run.report_json, json.dumps(report, indent=2))
+    write_text_atomic(run.report_html, render_html(report, figures, strips))
     return report
-
-
-def read_field_masks(out_dir: str | Path, names: list[str]) -> dict[str, np.ndarray]:
-    """OUT/masks/<name>.png for every frame, as written by expand."""
-    masks = {}
-    for name in names:
-        path = Path(out_dir) / "masks" / f"{name}.png"
-        m = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
-        if m is None or m.ndim != 2:
-            raise LabelsynthError(f"{path}: missing or not a single-channel class-id mask")
-        masks[name] = m
-    return masks

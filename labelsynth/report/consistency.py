@@ -14,7 +14,7 @@ Why three measures:
 
 from __future__ import annotations
 
-from collections.abc import Callable, Sequence
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 
 import cv2
@@ -26,6 +26,8 @@ from ..classes import IGNORE_ID, ClassMap
 from ..classes import WOUND_BED
 from ..metrics import Counts, frame_counts
 from ..progress import track
+from ..render.renderer import FieldRenderer
+from ..semantics.head import SemanticHead
 
 # Cross-view consistency
 PAIR_MAX_SIDE = 160  # frames are cast at most this many pixels on their long side
@@ -152,31 +154,18 @@ def pairwise_consistency(
 # leave-one-view-out
 # ------------------------------------------------------------------------------------------
 def leave_one_out(
-    sem,
+    view: FieldRenderer,
     capture: Capture,
-    names: Sequence[str],
-    refit: Callable[[str], None],
+    heads: Mapping[str, SemanticHead],
     *,
     progress: bool = True,
 ) -> dict[str, np.ndarray]:
-    """The field's mask of each named frame after ``refit(name)`` retrained it without that frame.
-
-    ``refit`` replaces ``sem.head``; the full head is restored afterwards, whatever happens.
-    """
+    """The mask of each frame named in ``heads`` rendered by its own head, one trained
+    without that frame."""
     cams = capture.unit_cameras()
     index = {n: i for i, n in enumerate(capture.names)}
-    full_head = sem.head
-    out: dict[str, np.ndarray] = {}
-    try:
-        prepare = getattr(refit, "prepare", None)
-        if prepare is not None and names:  # heads trained together (pipeline.LeaveOneOutRefit)
-            prepare(list(names), progress=progress)
-        for name in track(list(names), "leave-one-view-out", enabled=progress):
-            refit(name)
-            out[name] = sem.render(cams[index[name]]).mask
-    finally:
-        sem.head = full_head
-    return out
+    return {name: view.render(cams[index[name]], head).mask
+            for name, head in track(list(heads.items()), "leave-one-view-out", enabled=progress)}
 
 
 # ------------------------------------------------------------------------------------------

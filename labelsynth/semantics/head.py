@@ -6,14 +6,13 @@ Semantics are view-independent (Semantic-NeRF): the head reads the frozen geomet
 
 from __future__ import annotations
 
-from typing import Literal, get_args
-
 import numpy as np
 import torch
 from torch import nn
 
 from ..classes import ClassMap
 from ..geometry.encoding import HashGridEncoding
+from .config import CLASS_WEIGHTINGS, DECISION_RULES
 
 
 class ThresholdDropout(nn.Module):
@@ -62,11 +61,6 @@ class SemanticHead(nn.Module):
         if self.position_encoding is not None:
             h = torch.cat([h, self.position_encoding(positions, lookup=lookup)], dim=-1)
         return self.out(self.dropout(self.body(h)))
-
-
-# "auto" is resolved per run by training.resolve_class_weighting (which labels are taught)
-ClassWeighting = Literal["auto", "paper", "equal-tissue", "uniform", "inverse-sqrt", "inverse"]
-CLASS_WEIGHTINGS: tuple[str, ...] = get_args(ClassWeighting)
 
 
 def class_weights(
@@ -127,10 +121,6 @@ def wound_bed_logits(logits: torch.Tensor, classes: ClassMap) -> torch.Tensor:
 def wound_bed_probability(logits: torch.Tensor, classes: ClassMap) -> torch.Tensor:
     """Probability of the wound bed: softmax of the aggregated logit against background."""
     return torch.softmax(wound_bed_logits(logits, classes), dim=-1)[..., 1]
-
-
-DecisionRule = Literal["wound-bed-first", "argmax"]
-DECISION_RULES: tuple[str, ...] = get_args(DecisionRule)
 
 
 def decide_labels(probs: np.ndarray, classes: ClassMap, rule: str = "wound-bed-first") -> np.ndarray:

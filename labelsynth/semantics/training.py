@@ -6,7 +6,6 @@ import math
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
-from typing import TYPE_CHECKING
 
 import cv2
 import numpy as np
@@ -22,10 +21,8 @@ from ..geometry.sampling import OccupancyGrid, march, neus_weights
 from ..geometry.sdf import SDFField
 from ..geometry.training import _camera_rays, _resize
 from ..progress import make_progress
+from .config import SemanticConfig
 from .head import SemanticHead, class_weights
-
-if TYPE_CHECKING:  # the recipe imports this package's head module: no import at run time
-    from ..recipe import SemanticConfig
 
 # Logit vector given to the part of a ray that leaves the region of interest unabsorbed:
 # whatever lies beyond the surface band is background.

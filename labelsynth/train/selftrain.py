@@ -35,6 +35,7 @@ from ..classes import BACKGROUND_ID, WOUND_BED, ClassMap
 from ..errors import LabelsynthError
 from ..outdir import write_text_atomic
 from ..progress import console
+from ..rundir import LABELS_FILE
 from .data import TrainError
 from .loop import TrainConfig
 
@@ -122,11 +123,13 @@ def _fmt(v: float | None) -> str:
 def _expand(capture: Path, out: Path, labels: str, cfg: SelfTrainConfig) -> Path:
     """``expand CAPTURE --out OUT --labels L --recipe R --no-report``: the loop's one call into the
     pipeline; returns OUT/labels.h5."""
+    from ..options import ExpandOptions
     from ..pipeline import expand
 
-    expand(capture, out, labels=labels, recipe=cfg.recipe, device=cfg.device, seed=cfg.seed,
-           overrides=list(cfg.overrides), progress=False, report=False, force=True)
-    return out / "labels.h5"
+    options = ExpandOptions(labels=labels, recipe=cfg.recipe, device=cfg.device, seed=cfg.seed,
+                            overrides=list(cfg.overrides), report=False)
+    expand(capture, out, options, force=True, progress=False)
+    return out / LABELS_FILE
 
 
 def raw_labels_h5(capture: Path, path: Path) -> Path:
@@ -309,7 +312,7 @@ def selftrain(captures: list[str | Path], model: str | Path, out: str | Path, cf
                     tmp.replace(h5)
             else:
                 expanded = here / "expanded" / name
-                h5 = expanded / "labels.h5"
+                h5 = expanded / LABELS_FILE
                 if not h5.is_file():
                     say(f"{step}: expand --labels {cfg.labels} --recipe {cfg.recipe}")
                     t = time.perf_counter()

@@ -13,13 +13,14 @@ import numpy as np
 import pytest
 
 from labelsynth.batch.discover import BatchError, discover, find_captures, read_capture_list
-from labelsynth.batch.marker import is_done, make_marker, output_complete, write_marker
+from labelsynth.batch.marker import is_done, make_marker, write_marker
 from labelsynth.batch.merge import merge_labels
 from labelsynth.batch.run import check_resources, one_line
 from labelsynth.batch.table import BatchRow, write_batch_html, write_batch_json
 from labelsynth.classes import ClassMap
-from labelsynth.errors import CheckError
+from labelsynth.errors import CheckError, LabelsynthError
 from labelsynth.export import LabelsDataset, write_labels_h5
+from labelsynth.rundir import RunFolder, RunInfo
 
 
 def _capture(folder: Path, pose: str = "transforms.json") -> Path:
@@ -127,7 +128,7 @@ def test_is_done_needs_the_marker_and_a_complete_output(tmp_path):
     for f in ("run.json", "labels.h5", "field.pt"):
         (output / "masks").mkdir(parents=True, exist_ok=True)
         (output / f).write_text("x")
-    assert output_complete(output, report=False) and not output_complete(output, report=True)
+    assert RunFolder(output).is_finished(report=False) and not RunFolder(output).is_finished(report=True)
     assert not is_done(out, "c", marker, output, report=False)  # no marker yet
     write_marker(out, "c", marker)
     assert is_done(out, "c", marker, output, report=False)
@@ -153,7 +154,7 @@ def test_bad_options_fail_before_any_capture_or_ray(tmp_path):
 
     with pytest.raises(BatchError, match="--device cuda needs --gpus-per-capture"):
         run_batch(tmp_path, tmp_path / "out", ExpandOptions(device="cuda"))
-    with pytest.raises(BatchError, match="--labels must be one of"):
+    with pytest.raises(LabelsynthError, match="--labels must be one of"):
         run_batch(tmp_path, tmp_path / "out", ExpandOptions(labels="all"))
     _capture(tmp_path / "c")
     with pytest.raises(Exception, match="unknown recipe 'nope'"):
@@ -229,7 +230,8 @@ def test_merge_refuses_different_class_tables(tmp_path):
 def test_quality_columns_come_from_the_capture_report(tmp_path):
     from labelsynth.batch.table import read_quality
 
-    (tmp_path / "run.json").write_text(json.dumps({"seconds": {"geometry": 10.0, "semantics": 5.0, "render": 1.5}}))
+    RunFolder(tmp_path).write_run(RunInfo("/c/a", "annotations", seconds={"geometry": 10.0, "semantics": 5.0,
+                                                                        "render": 1.5}))
     (tmp_path / "report.json").write_text(json.dumps({"summary": {
         "num_frames": 6, "median_agreement": {"wound_bed": 0.93}, "median_loo_dice": {"wound_bed": 0.88},
         "flagged": ["frame_003"]}}))

@@ -224,8 +224,8 @@ def test_bench_checks_truths_with_the_capture(tmp_path) -> None:
 
 def test_report_rebuild_checks_inputs_and_the_field_classes(tmp_path, monkeypatch) -> None:
     """`labelsynth report` on an OUT whose capture changed: every problem before any refit."""
+    from labelsynth import rundir
     from labelsynth.pipeline import rebuild_report
-    from labelsynth.render.field import SemanticField
 
     root = _with_masks(tmp_path / "cap")
     (root / "classes.json").write_text(json.dumps({"classes": [
@@ -238,11 +238,13 @@ def test_report_rebuild_checks_inputs_and_the_field_classes(tmp_path, monkeypatc
     out.mkdir()
     (out / "run.json").write_text(json.dumps({"capture": str(root), "labels": "annotations"}))
     (out / "field.pt").write_bytes(b"stub")
+    (out / "labels.h5").write_bytes(b"stub")
+    (out / "masks").mkdir()
 
     class Stub:
         classes = ClassMap.default()
 
-    monkeypatch.setattr(SemanticField, "load", classmethod(lambda cls, path, device: Stub()))
+    monkeypatch.setattr(rundir, "load_field", lambda path, device: Stub())
     with pytest.raises(CheckError) as err:
         rebuild_report(out, device="cpu", progress=False)
     probs = err.value.problems

@@ -59,12 +59,15 @@ def test_round_trip_keeps_vertex_colours(tmp_path, ext):
 
 
 class _FakeField:
-    """Just what export_labelled_mesh uses: a unit-cube mesh, a head, a normalisation, a recipe."""
+    """Just what export_labelled_mesh uses of a field's renderer: a unit-cube mesh, a head, a
+    normalisation, a recipe."""
 
     def __init__(self):
         self.classes = CLASSES
         self.recipe = Recipe()
+        self.config = self.recipe.render
         self.normalization = SceneNormalization(center=np.array([5.0, 0.0, 0.0]), scale=2.0)
+        self.field = self  # the renderer's field
         self._mesh = trimesh.Trimesh(SQUARE_V * 0.5, SQUARE_F, process=False)
 
     def mesh(self):

@@ -191,7 +191,9 @@ def test_a_surface_that_fills_every_view_is_not_given_away_to_the_background(tmp
     # ...and the field stays a distance function on its surface (the band and the mesh rely on
     # it): measured here, |grad f| (10th-90th percentile) 0.96-1.04 at eikonal weight 0.1,
     # 0.94-1.07 at 0.03, 0.70-1.94 at 0.001
-    vertices = torch.as_tensor(np.asarray(field.mesh().vertices), dtype=torch.float32)
+    from labelsynth.render.renderer import FieldRenderer
+
+    vertices = torch.as_tensor(np.asarray(FieldRenderer(field).mesh().vertices), dtype=torch.float32)
     norms = field.sdf.sdf_and_gradient(vertices, create_graph=False)[2].norm(dim=-1)
     assert 0.8 <= float(norms.quantile(0.1)) and float(norms.quantile(0.9)) <= 1.25, norms.quantile(torch.tensor([0.1, 0.9]))
 

@@ -39,13 +39,17 @@ def augmented(tiny_expanded, tmp_path_factory):
 
 @pytest.fixture(scope="module")
 def real_frames(tiny_expanded):
-    from labelsynth.novel.source import load_expanded
-    from labelsynth.novel.views import RealFrames
+    from types import SimpleNamespace
 
-    ex = load_expanded(tiny_expanded.out, torch.device("cpu"))
-    cap = ex.capture
+    from labelsynth.novel.views import RealFrames
+    from labelsynth.render.renderer import FieldRenderer
+    from labelsynth.rundir import RunFolder
+
+    run = RunFolder(tiny_expanded.out)
+    _, cap = run.open_capture()
+    ex = SimpleNamespace(capture=cap, view=FieldRenderer(run.load_field(torch.device("cpu"))))
     images = [cap.load_image(i) for i in range(len(cap))]
-    return ex, RealFrames(ex.field, cap.unit_cameras(), images), images
+    return ex, RealFrames(ex.view, cap.unit_cameras(), images), images
 
 
 def _psnr(a: np.ndarray, b: np.ndarray, where: np.ndarray) -> float:
@@ -113,7 +117,7 @@ def test_cameras_are_in_the_captures_world(augmented, real_frames):
         np.testing.assert_allclose(c2w[VIEWS + i], frame.camera.c2w)
     cam0 = ex.capture.frames[0].camera
     novel = ex.capture.normalization.camera_to_unit(Camera(cam0.width, cam0.height, *intr[0][:4], c2w[0], *intr[0][4:]))
-    r = ex.field.render(novel)
+    r = ex.view.render(novel)
     np.testing.assert_array_equal(r.mask[valid[0]], masks[0][valid[0]])
 
 
@@ -123,14 +127,14 @@ def test_real_pose_reproduces_the_frame(real_frames, tiny_expanded):
     ex, real, images = real_frames
     cams = ex.capture.unit_cameras()
     for i in (0, len(cams) - 1):
-        v = render_view(ex.field, real, cams[i])
+        v = render_view(ex.view, real, cams[i])
         assert v.valid_fraction > 0.99
         assert _psnr(v.image, images[i], v.valid) > 45.0
         expand_mask = cv2.imread(str(tiny_expanded.out / "masks" / f"{ex.capture.frames[i].name}.png"),
                                  cv2.IMREAD_UNCHANGED)
         np.testing.assert_array_equal(v.mask[v.valid], expand_mask[v.valid])
     # left out, the frame is rebuilt from its neighbours: close, not exact
-    v = render_view(ex.field, real, cams[3], exclude={3})
+    v = render_view(ex.view, real, cams[3], exclude={3})
     assert 20.0 < _psnr(v.image, images[3], v.valid) < 45.0
 
 
@@ -141,9 +145,9 @@ def test_unseen_pixels_are_ignore(real_frames):
 
     ex, real, images = real_frames
     cams = ex.capture.unit_cameras()
-    only0 = RealFrames(ex.field, cams[:1], images[:1], depth=[real.depth_map(cams[0])])
-    v = render_view(ex.field, only0, cams[5])
-    r = ex.field.render(cams[5], keep_points=True)
+    only0 = RealFrames(ex.view, cams[:1], images[:1], depth=[real.depth_map(cams[0])])
+    v = render_view(ex.view, only0, cams[5])
+    r = ex.view.render(cams[5], keep_points=True)
     pix, z = cams[0].project(r.points.reshape(-1, 3))
     outside = ((pix[:, 0] < 0) | (pix[:, 0] >= cams[0].width) | (pix[:, 1] < 0) | (pix[:, 1] >= cams[0].height)
                | (z <= 0)).reshape(r.mask.shape) & r.hit
@@ -158,7 +162,7 @@ def test_rejected_views_are_counted(real_frames):
     from labelsynth.novel.poses import Spread, path_points, sample_poses
 
     ex, real, _ = real_frames
-    caster = ex.field.render_caster()
+    caster = ex.view.render_caster()
     path = path_points(ex.capture.unit_cameras(), caster)
     wild = Spread(tilt_deg=75.0, distance=3.0, roll_deg=180.0, focal=1.0)
     s = sample_poses(4, np.random.default_rng(0), path, wild, caster, real, max_tries=200)
@@ -204,34 +208,35 @@ def test_parse_spread():
 
 def test_bad_inputs_are_one_line_errors(tiny_expanded, tmp_path):
     from labelsynth.novel import AugmentError, augment
+    from labelsynth.rundir import RunFolderError
 
     out = _copy_out(tiny_expanded, tmp_path / "out")
     with pytest.raises(AugmentError, match="--views must be a whole number of at least 1, got 0"):
         augment(out, 0, progress=False)
-    with pytest.raises(AugmentError, match="not found"):
+    with pytest.raises(RunFolderError, match="not found"):
         augment(tmp_path / "nowhere", 2, progress=False)
     partial = tmp_path / "half.partial"
     partial.mkdir()
-    with pytest.raises(AugmentError, match="not finished"):
+    with pytest.raises(RunFolderError, match="not finished"):
         augment(tmp_path / "half", 2, progress=False)
-    with pytest.raises(AugmentError, match="unfinished expand"):
+    with pytest.raises(RunFolderError, match="unfinished expand"):
         augment(partial, 2, progress=False)
     nofield = _copy_out(tiny_expanded, tmp_path / "nofield")
     (nofield / "field.pt").unlink()
-    with pytest.raises(AugmentError, match=r"field\.pt: not found"):
+    with pytest.raises(RunFolderError, match=r"field\.pt: not found"):
         augment(nofield, 2, progress=False)
     moved = _copy_out(tiny_expanded, tmp_path / "moved")
     run = json.loads((moved / "run.json").read_text())
     run["capture"] = str(tmp_path / "gone" / "capture")
     (moved / "run.json").write_text(json.dumps(run))
-    with pytest.raises(AugmentError, match=r"gone/capture: the capture named in .*run\.json was not found"):
+    with pytest.raises(RunFolderError, match=r"gone/capture: the capture named in .*run\.json was not found"):
         augment(moved, 2, progress=False)
     (out / "augment").mkdir()
     (out / "augment" / "keep.txt").write_text("x")
     with pytest.raises(LabelsynthError, match="exists and is not empty"):
         augment(out, 2, progress=False)
     assert (out / "augment" / "keep.txt").read_text() == "x"
-    for err in (AugmentError,):
+    for err in (AugmentError, RunFolderError):
         assert issubclass(err, LabelsynthError)
 
 

@@ -30,7 +30,7 @@ from labelsynth.pipeline import labelled_frames
 from labelsynth.pipeline import rebuild_report
 from labelsynth.recipe import Recipe
 from labelsynth.render.surface import SurfaceCaster
-from labelsynth.report import build_report
+from labelsynth.report.build import build_report
 from labelsynth.report.consistency import Check, flag_frames, pairwise_consistency
 
 W, H, F = 64, 48, 60.0
@@ -74,14 +74,16 @@ def make_plane_capture(root: Path, n: int = 6) -> Path:
 
 
 class PlaneField:
-    """A stand-in for SemanticField on the plane: the head is a 3D majority vote of the
-    training masks on a texel grid (what a semantic field learns, without the training)."""
+    """A stand-in for a fitted field and its renderer on the plane: a head is a 3D majority vote
+    of the training masks on a texel grid (what a semantic field learns, without the training)."""
 
     def __init__(self, capture, res: int = 48) -> None:
         self.classes = capture.classes
         self.normalization = capture.normalization
         self.recipe = Recipe()
+        self.config = self.recipe.render
         self.device = torch.device("cpu")
+        self.field = self  # the renderer's field
         z = float(self.normalization.to_unit(np.zeros(3))[2])
         g = np.linspace(-1, 1, 65)
         xx, yy = np.meshgrid(g, g, indexing="ij")
@@ -103,7 +105,8 @@ class PlaneField:
         ij = np.clip(((pts[:, :2] + 1) / 2 * self.res).astype(int), 0, self.res - 1)
         return ij[:, 0], ij[:, 1]
 
-    def fit(self, frames) -> None:
+    def fit(self, frames) -> np.ndarray:
+        """A head learnt from ``frames`` (also made this field's head)."""
         lut = self.classes.id_to_index_lut()
         votes = np.zeros((self.res, self.res, self.classes.num_classes))
         for lf in frames:
@@ -113,17 +116,20 @@ class PlaneField:
             i, j = self._texel(pts[keep])
             np.add.at(votes, (i, j, lut[m[keep]]), lf.weight)
         self.head = votes.argmax(-1)
+        return self.head
 
-    def logits_at(self, points) -> torch.Tensor:
+    def logits_at(self, points, head=None) -> torch.Tensor:
+        head = self.head if head is None else head
         i, j = self._texel(np.asarray(points, dtype=float))
-        return torch.nn.functional.one_hot(torch.as_tensor(self.head[i, j]), self.classes.num_classes).float()
+        return torch.nn.functional.one_hot(torch.as_tensor(head[i, j]), self.classes.num_classes).float()
 
-    def render(self, cam, **_) -> SimpleNamespace:
+    def render(self, cam, head=None, **_) -> SimpleNamespace:
+        head = self.head if head is None else head
         hit, pts, _ = self._caster.cast_camera(cam)
         idx = np.full(len(hit), self.classes.background_index)
         if hit.any():
             i, j = self._texel(pts[hit])
-            idx[hit] = self.head[i, j]
+            idx[hit] = head[i, j]
         return SimpleNamespace(mask=self.classes.index_to_id_lut()[idx].reshape(cam.height, cam.width))
 
 
@@ -140,10 +146,17 @@ def run_plane_report(tmp_path: Path, corrupt=None, mode: str = "annotations", **
     masks = {n: field.render(cams[i]).mask for i, n in enumerate(capture.names)}
     out = tmp_path / "out"
     out.mkdir()
-    refit = lambda name: field.fit(labelled_frames(capture, mode, field.recipe, exclude={name}))  # noqa: E731
     taught = {f.name: f.mask for f in labelled_frames(capture, mode, field.recipe)}
-    report = build_report(out, capture, field, masks, mode, taught=taught, refit=refit, progress=False, **kw)
+    report = build_report(out, capture, field, masks, mode, taught=taught, loo_heads=_plane_loo_heads(capture, mode),
+                          progress=False, **kw)
     return out, report, field, capture, masks
+
+
+def _plane_loo_heads(capture, mode):
+    """The stand-in's leave-one-out heads: a fresh plane field per name, fitted without it."""
+    def heads(names):
+        return {n: PlaneField(capture).fit(labelled_frames(capture, mode, Recipe(), exclude={n})) for n in names}
+    return heads
 
 
 def _shift(mask: np.ndarray) -> np.ndarray:
@@ -200,9 +213,7 @@ def test_wrong_annotation_is_flagged_and_only_it(tmp_path, corrupt, what):
     assert "LOO Dice" in reason and re.search(r"vs median \d\.\d\d", reason)
     assert any(w in reason for w in ([what] if isinstance(what, str) else what))
     assert report["summary"]["flagged"] == ["frame_003"]
-    # the full head is back after leave-one-out
-    full = field.head.copy()
-    assert full is not None and report["summary"]["median_loo_dice"]["wound_bed"] is not None
+    assert report["summary"]["median_loo_dice"]["wound_bed"] is not None
     html_text = (out / "report.html").read_text()
     assert "frame_003" in html_text and "Flagged frames" in html_text
 
@@ -291,12 +302,14 @@ def test_rebuild_report_and_cli(tmp_path, monkeypatch):
     for name, m in masks.items():
         write_masks_png(out / "masks", name, m)
     (out / "field.pt").write_bytes(b"stand-in")
+    (out / "labels.h5").write_bytes(b"stand-in")
     (out / "run.json").write_text(json.dumps({"capture": str(capture.root), "labels": "annotations", "seed": 0}))
     for f in ("report.json", "report.html", "mesh.ply", "mesh.glb"):
         (out / f).rename(out / f"old_{f}")
     shutil.copy(out / "old_report.json", out / "report.json")  # previous choices: glb? mm scale
 
-    from labelsynth.render import field as field_model
+    import labelsynth.pipeline as pipeline_mod
+    from labelsynth import rundir
 
     def fake_load(path, device):
         cap = load_capture(capture.root)
@@ -304,12 +317,11 @@ def test_rebuild_report_and_cli(tmp_path, monkeypatch):
         fresh.fit(labelled_frames(cap, "annotations", fresh.recipe))
         return fresh
 
-    monkeypatch.setattr(field_model.SemanticField, "load", staticmethod(fake_load))
-    import labelsynth.pipeline as pipeline_mod
-
-    # the plane stand-in refits itself; the orchestration hands the report that callable
-    monkeypatch.setattr(pipeline_mod, "refit_without", lambda sem, cap, mode, seed=0: (
-        lambda name: sem.fit(labelled_frames(cap, mode, sem.recipe, exclude={name}))))
+    monkeypatch.setattr(rundir, "load_field", fake_load)
+    monkeypatch.setattr(pipeline_mod, "FieldRenderer", lambda fitted: fitted)  # the stand-in renders itself
+    # the plane stand-in's heads; the orchestration hands the report that callable
+    monkeypatch.setattr(pipeline_mod, "leave_one_out_heads_of", lambda fitted, cap, mode, names, **kw: (
+        _plane_loo_heads(cap, mode)(names)))
     again = rebuild_report(out, device="cpu", progress=False)
     for f in ("report.json", "report.html", "mesh.ply"):
         assert (out / f).is_file()
@@ -343,3 +355,17 @@ def test_real_field_flags_a_shifted_annotation(tiny_expanded):
     assert annotated[bad_name]["flagged"], annotated[bad_name]
     assert not any(f["flagged"] for n, f in annotated.items() if n != bad_name), annotated
     assert (out / "report.html").is_file() and (out / "mesh.ply").is_file()
+
+
+@pytest.mark.xdist_group("tiny_expanded")
+def test_rebuilt_report_has_the_leave_one_out_of_the_expand(tiny_expanded, tmp_path):
+    """`labelsynth report OUT` trains the leave-one-out heads as expand did (the labelled rays baked
+    again with the run's seed, the heads trained together), so a field loaded from disk gives
+    the first report's leave-one-out Dice exactly, and the same flags."""
+    out = tmp_path / "out"
+    shutil.copytree(tiny_expanded.out, out)
+    first = json.loads((out / "report.json").read_text())
+    again = rebuild_report(out, device="cpu", progress=False)
+    loo = lambda rep: {f["name"]: f.get("loo_dice") for f in rep["frames"] if f["annotated"]}  # noqa: E731
+    assert loo(again) == loo(json.loads(json.dumps(first))) and any(v for v in loo(again).values())
+    assert again["summary"]["flagged"] == first["summary"]["flagged"]

@@ -11,7 +11,8 @@ import torch
 
 from labelsynth.classes import ClassInfo, ClassMap
 from labelsynth.geometry.sampling import OccupancyGrid
-from labelsynth.recipe import SemanticConfig, load_recipe
+from labelsynth.recipe import load_recipe
+from labelsynth.semantics.config import SemanticConfig
 from labelsynth.semantics.head import class_weights, decide_labels, wound_bed_logits, wound_bed_probability
 from labelsynth.semantics.training import (
     LabelledFrame,

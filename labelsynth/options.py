@@ -1,0 +1,145 @@
+"""The options of one run (``expand``, and every capture of a ``batch``): typed, checked when made.
+
+``ExpandOptions`` is what the CLI parses, ``pipeline.expand`` runs and ``batch`` hands each
+capture. A value that is not one of its choices is a one-line ``OptionError`` as soon as the
+options are made; ``ExpandOptions.check`` then checks what needs more than the value (the
+recipe file and every key, type and range in it, the device, the frame selector's syntax)
+before any capture is read, any training step is taken and before OUT or OUT.partial exists.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from dataclasses import dataclass, field
+from enum import Enum
+from typing import Any, TypeVar
+
+from .capture.select import check_frame_spec
+from .device import pick_device
+from .errors import LabelsynthError
+from .recipe import Recipe, load_recipe
+
+C = TypeVar("C", bound="Choice")
+
+
+class OptionError(LabelsynthError, ValueError):
+    """An option with a value it cannot take (one line naming the option)."""
+
+
+class Choice(str, Enum):
+    """A named choice: compares, prints and serialises as its value (``"ply" == MeshFormat.PLY``)."""
+
+    def __str__(self) -> str:
+        return self.value
+
+    def __format__(self, spec: str) -> str:
+        return format(self.value, spec)
+
+    @classmethod
+    def choices(cls) -> tuple[str, ...]:
+        return tuple(c.value for c in cls)
+
+    @classmethod
+    def parse(cls: type[C], value: Any, option: str) -> C:
+        """``value`` (a member or its text) as a member; otherwise one line naming ``option``."""
+        if isinstance(value, cls):
+            return value
+        try:
+            return cls(str(value).strip().lower()) if isinstance(value, str) else cls(value)
+        except ValueError:
+            raise OptionError(f"{option} must be one of {', '.join(cls.choices())}, not '{value}'") from None
+
+
+class LabelMode(Choice):
+    """Which masks teach the semantic stage."""
+
+    ANNOTATIONS = "annotations"
+    PREDICTIONS = "predictions"
+    BOTH = "both"
+
+
+class DeviceChoice(Choice):
+    """Where a run computes; ``auto`` = CUDA when torch sees it (``device.pick_device``)."""
+
+    AUTO = "auto"
+    CPU = "cpu"
+    CUDA = "cuda"
+
+
+class MeshFormat(Choice):
+    """The labelled mesh's file format: mesh.ply is always written, glb adds mesh.glb."""
+
+    PLY = "ply"
+    GLB = "glb"
+
+
+def positive_number(value: Any, option: str) -> float:
+    """``value`` as a finite float > 0; otherwise one line naming ``option``."""
+    if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value) or value <= 0:
+        raise OptionError(f"{option} must be a finite number > 0, not {value!r}")
+    return float(value)
+
+
+@dataclass
+class ExpandOptions:
+    """Everything that decides one expand besides the capture and OUT (the CLI's expand options)."""
+
+    labels: LabelMode | None = None
+    """What teaches; None: both when both folders exist, else whichever exists."""
+    recipe: str = "default"
+    """A recipe name (``recipes/NAME.yaml``) or a YAML file."""
+    device: DeviceChoice = DeviceChoice.AUTO
+    seed: int = 0
+    overrides: list[str] = field(default_factory=list)
+    """``section.key=value`` recipe overrides (``--set``)."""
+    annotated_frames: str | list[str] | None = None
+    """Only these frames' annotations teach (``capture.select``); None: all."""
+    report: bool = True
+    """Write the consistency report and the labelled mesh."""
+    mesh_format: MeshFormat = MeshFormat.PLY
+    mm_per_unit: float | None = None
+    """Millimetres per scene unit: the report's class areas in mm² too."""
+
+    def __post_init__(self) -> None:
+        if self.labels is not None:
+            self.labels = LabelMode.parse(self.labels, "--labels")
+        self.device = DeviceChoice.parse(self.device, "--device")
+        self.mesh_format = MeshFormat.parse(self.mesh_format, "--mesh-format")
+        if isinstance(self.seed, bool) or not isinstance(self.seed, int) or self.seed < 0:
+            raise OptionError(f"--seed must be a whole number >= 0, not {self.seed!r}")
+        if not isinstance(self.recipe, str) or not self.recipe.strip():
+            raise OptionError(f"--recipe must be a recipe name or a YAML file, not {self.recipe!r}")
+        if self.overrides is None:
+            self.overrides = []
+        if isinstance(self.overrides, str) or not all(isinstance(o, str) for o in self.overrides):
+            raise OptionError("--set takes section.key=value texts")
+        self.overrides = list(self.overrides)
+        if self.mm_per_unit is not None:
+            self.mm_per_unit = positive_number(self.mm_per_unit, "--mm-per-unit")
+
+    def replace(self, **changes: Any) -> "ExpandOptions":
+        """A copy with some options changed (checked again)."""
+        return dataclasses.replace(self, **changes)
+
+    def load_recipe(self) -> Recipe:
+        """The recipe these options name, with their overrides (``recipe.load_recipe``)."""
+        return load_recipe(self.recipe, self.overrides)
+
+    def check(self, *, device: bool = True) -> Recipe:
+        """Check what needs more than the values, before any work: the recipe (file, keys,
+        types, ranges), the frame selector's syntax and (``device``) that the device exists
+        here. Returns the recipe. ``batch`` leaves the device to each worker's node."""
+        recipe = self.load_recipe()
+        if self.annotated_frames is not None:
+            check_frame_spec(self.annotated_frames)
+        if device:
+            pick_device(self.device.value)
+        return recipe
+
+    def marker_options(self) -> dict[str, Any]:
+        """The options that change a capture's output (``batch``'s resume marker; the recipe is
+        hashed on its own)."""
+        return {"labels": None if self.labels is None else self.labels.value, "seed": self.seed,
+                "annotated_frames": self.annotated_frames, "report": self.report,
+                "mesh_format": self.mesh_format.value, "mm_per_unit": self.mm_per_unit}
