@@ -16,6 +16,7 @@ whose truth holds the class). Arms (``--arms``; K = expert frames per capture, `
     bK  every frame, expanded from those K by ``labelsynth expand --labels annotations``, unweighted
     cK  (b') bK with each pixel weighted by its labels.h5 confidence
     fK  (b'') bK with pixels below a confidence floor (``--floor``) ignored
+    eK  bK with the expert frames' pixels weighted ``--expert-weight`` (labels.h5 marks them annotated)
     a1-split  a1 with ``train``'s old default split: the last capture held out (trains on 5 frames)
     d   the exact truth of every frame: the ceiling
   self-training (plain captures; M0 = a1's model; new captures ``--self-seeds`` with 1 expert frame)
@@ -137,6 +138,16 @@ class Bench:
 
             self._classes = ClassMap.of_capture(self.synth(PLAIN, self.args.test_seeds[0]) / "capture")
         return self._classes
+
+    def val_tissues(self, kind: str) -> list[str]:
+        """The tissues the validation capture's truth holds (in any frame)."""
+        from labelsynth.capture.masks import read_mask
+
+        truth = self.synth(kind, self.seeds[kind]["val"][0]) / "truth"
+        ids = set()
+        for p in truth.glob("*.png"):
+            ids |= set(np.unique(read_mask(p, None, self.classes)).tolist())
+        return [c.name for c in self.classes.classes if c.id in ids and c.name in TISSUES]
 
     # --- scoring ------------------------------------------------------------------------------
     def score_dir(self, masks: Path, truth: Path, names: list[str] | None = None):
@@ -269,14 +280,10 @@ class Bench:
              **extra) -> dict:
         test, seg_s, seg_n = self.test_scores(arm if "round" not in extra else f"{arm}-r{extra['round']}",
                                               model_dir / "model.onnx", kind)
-        last = report["history"][-1].get("val_dice") or {}
-        val_t = [last[t] for t in TISSUES if last.get(t) is not None]
         row = {"arm": arm, "regime": regime, "what": what, "kind": kind, "train_frames": report["split"]["train_frames"],
                "split": report["split"]["description"], "train_s": report["times"]["train_s"], "steps": report["step"],
                "test": test, "labels": quality, "segment_fps": seg_n / seg_s if seg_s else None,
-               "val_tissue_mean": float(np.mean(val_t)) if val_t else None,
-               "curve": [{"step": h["step"], "val_loss": h.get("val_loss"),
-                          "val_tissue_mean": _tissue_mean(h.get("val_dice"))} for h in report["history"]], **extra}
+               "model_dir": str(model_dir), **extra}
         log(f"{arm}{' round ' + str(extra['round']) if 'round' in extra else ''}: test wound bed Dice "
             f"{fmt(test['classes']['wound_bed']['dice'])}, tissue mean {fmt(test['tissue_mean_dice'])}")
         return row
@@ -302,7 +309,7 @@ class Bench:
                 report = self.train(arm, sources, kind)
                 what = f"{k} expert frame(s) per capture"
             return [self._row(arm, regime, what, kind, self.root / "models" / arm, report, {"exact": True}, k=k)]
-        if name[0] in "bcf":
+        if name[0] in "bcfe":
             k = int(name[1:])
             sources = [self.expand(kind, s, k) / "labels.h5" for s in train_seeds]
             over, what = {}, f"every frame expanded from {k} expert frame(s)"
@@ -310,6 +317,8 @@ class Bench:
                 over, what = {"confidence_weight": True}, what + ", confidence-weighted"
             elif name[0] == "f":
                 over, what = {"min_confidence": a.floor}, what + f", confidence >= {a.floor:g}"
+            elif name[0] == "e":
+                over, what = {"expert_weight": a.expert_weight}, what + f", its expert frames weighted {a.expert_weight:g}x"
             report = self.train(arm, sources, kind, **over)
             quality = self.label_quality([(self.expand(kind, s, k) / "masks", self.synth(kind, s) / "truth")
                                           for s in train_seeds])
@@ -337,9 +346,26 @@ class Bench:
         raise SystemExit(f"unknown arm {arm!r}")
 
 
-def _tissue_mean(dice: dict | None) -> float | None:
-    vals = [dice[t] for t in TISSUES if dice and dice.get(t) is not None]
-    return float(np.mean(vals)) if vals else None
+def _model_dir(root: Path, row: dict) -> Path:
+    if "model_dir" in row:
+        return Path(row["model_dir"])
+    if row["arm"].startswith("st-"):
+        mode = {"raw": "raw", "pred": "predictions", "both": "both"}[row["arm"][3:]]
+        return root / "selftrain" / mode / f"round{row['round']}" / "model"
+    return root / "models" / row["arm"]
+
+
+def curve(root: Path, row: dict, present: list[str]) -> list[dict]:
+    """The arm's validation curve from its train.json: loss, and the mean Dice of the tissues the
+    validation capture's truth holds (a tissue it lacks has no Dice worth averaging, only false alarms)."""
+    report = json.loads((_model_dir(root, row) / "train.json").read_text())
+    out = []
+    for h in report["history"]:
+        dice = h.get("val_dice") or {}
+        vals = [dice[t] for t in present if dice.get(t) is not None]
+        out.append({"step": h["step"], "val_loss": h.get("val_loss"),
+                    "val_tissue_mean": float(np.mean(vals)) if vals else None})
+    return out
 
 
 def pool(scores: list):
@@ -427,15 +453,20 @@ def plot_curves(rows: list[dict], path: Path) -> None:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    fig, ax = plt.subplots(figsize=(9, 5))
+    fig, (ax, ax_loss) = plt.subplots(1, 2, figsize=(14, 5))
     for r in rows:
-        pts = [(c["step"], c["val_tissue_mean"]) for c in r["curve"] if c["val_tissue_mean"] is not None]
+        pts = [(c["step"], c["val_tissue_mean"], c["val_loss"]) for c in r["curve"] if c["val_tissue_mean"] is not None]
         if pts:
-            ax.plot(*zip(*pts), label=_label(r), lw=2.5 if r["arm"] in ("d", "pd") else 1.2)
+            steps, dice, loss = zip(*pts)
+            width = 2.5 if r["arm"] in ("d", "pd") else 1.2
+            ax.plot(steps, dice, label=_label(r), lw=width)
+            ax_loss.plot(steps, loss, label=_label(r), lw=width)
     ax.set_xlabel("step")
-    ax.set_ylabel("validation tissue-mean Dice (validation capture's truth)")
-    ax.set_ylim(0, 1)
+    ax.set_ylabel("validation Dice, mean of the tissues in its truth")
+    ax.set_ylim(0.4, 1)
     ax.legend(fontsize=7, ncol=2)
+    ax_loss.set_xlabel("step")
+    ax_loss.set_ylabel("validation loss (CE + Dice)")
     fig.tight_layout()
     fig.savefig(path, dpi=100)
     plt.close(fig)
@@ -461,6 +492,7 @@ def main() -> None:
     ap.add_argument("--recipe", default="fast", help="expand recipe (report off)")
     ap.add_argument("--set", dest="overrides", action="append", default=[], help="expand recipe override")
     ap.add_argument("--floor", type=float, default=0.5, help="confidence floor of the fK arms")
+    ap.add_argument("--expert-weight", type=float, default=4.0, help="expert-frame weight of the eK arms")
     ap.add_argument("--rounds", type=int, default=2, help="self-training rounds of st-pred")
     ap.add_argument("--both-rounds", type=int, default=2, help="self-training rounds of st-both (more continue a run)")
     ap.add_argument("--arch", default="segformer")
@@ -509,8 +541,11 @@ def main() -> None:
     if not rows:
         raise SystemExit("no arm is done yet")
     by = {_label(r): r for r in rows}
+    present = {kind: bench.val_tissues(kind) for kind in {r["kind"] for r in rows}}
+    for r in rows:
+        r["curve"] = curve(args.out, r, present[r["kind"]])
     confidence = {}
-    for kind, k in sorted({(r["kind"], r["k"]) for r in rows if "k" in r and r["arm"].lstrip("p")[0] in "bcf"}):
+    for kind, k in sorted({(r["kind"], r["k"]) for r in rows if "k" in r and r["arm"].lstrip("p")[0] in "bcfe"}):
         confidence[f"{kind}-K{k}"] = bench.confidence_stats(kind, k)
     wall = time.perf_counter() - t_all
 
@@ -528,8 +563,8 @@ def main() -> None:
                   f"{c['accuracy_kept']:.3f}, removes {c['wrong_removed']:.1%} of the wrong ones")
     for r in rows:
         if r["arm"] in ("d", "pd"):
-            curve = ", ".join(f"{c['step']}: {fmt(c['val_tissue_mean'])}" for c in r["curve"])
-            print(f"\nceiling ({r['arm']}) validation tissue-mean Dice by step: {curve}")
+            points = ", ".join(f"{c['step']}: {fmt(c['val_tissue_mean'])}" for c in r["curve"])
+            print(f"\nceiling ({r['arm']}) validation Dice (mean of {', '.join(present[r['kind']])}) by step: {points}")
     for r in rows:
         if r["arm"].startswith("st-") and r["labels"].get("predictions"):
             p = r["labels"]["predictions"]

@@ -304,6 +304,30 @@ def test_split_is_by_capture(sources):
         split_by_capture(loaded, ["nope"])
 
 
+def test_val_split_modes_say_what_they_hold_out(sources):
+    from labelsynth.train.loop import TrainConfig
+
+    loaded, _ = load_sources([sources["cap0"], sources["cap1"], sources["h5"]])  # 2 + 2 + 4 frames
+    none = split_by_capture(loaded, mode="none")
+    assert len(none.train) == 8 and not none.val and "all 8 frames" in none.description
+    cap = split_by_capture(loaded, mode="capture")
+    assert len(cap.train) == 4 and {fr.source for fr in cap.val} == {"expanded"}
+    assert "training on the other 4 of the 8 frames given" in cap.description
+    frames = split_by_capture(loaded, mode="frames")
+    assert [fr.name for fr in frames.val][-1] == loaded[-1].names[-1] and len(frames.train) == 5
+    assert "training on the other 5 of the 8 frames given" in frames.description
+    auto = split_by_capture(loaded, mode="auto")  # 3 sources: a capture held out
+    assert [fr.name for fr in auto.val] == [fr.name for fr in cap.val]
+    named = split_by_capture(loaded, [str(sources["cap0"])], mode="none")  # named captures win over the mode
+    assert named.val_sources == [str(sources["cap0"])]
+    with pytest.raises(TrainError, match="--val-split"):
+        split_by_capture(loaded, mode="half")
+    with pytest.raises(TrainError, match="two or more sources"):
+        split_by_capture(loaded[:1], mode="capture")
+    with pytest.raises(TrainError, match="--val-split"):
+        TrainConfig(val_split="x").check()
+
+
 # --- bad input: one line naming the file -----------------------------------------------------------
 def test_mixed_class_tables_name_the_file(sources, tmp_path):
     other = ClassMap.from_dict({"classes": [{"id": 0, "name": "background"}, {"id": 1, "name": "wound"}]})
