@@ -306,10 +306,7 @@ def selftrain(captures: list[str | Path], model: str | Path, out: str | Path, cf
                 h5 = here / "labels" / f"{name}.h5"
                 if not h5.is_file():
                     say(f"{step}: labels.h5 of the raw masks")
-                    tmp = h5.with_name(h5.name + ".partial")
-                    tmp.unlink(missing_ok=True)
-                    raw_labels_h5(view, tmp)
-                    tmp.replace(h5)
+                    raw_labels_h5(view, h5)  # written as h5.partial, renamed when complete
             else:
                 expanded = here / "expanded" / name
                 h5 = expanded / LABELS_FILE
