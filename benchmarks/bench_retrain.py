@@ -474,6 +474,15 @@ def plot_curves(rows: list[dict], path: Path) -> None:
     plt.close(fig)
 
 
+def scale(a) -> str:
+    """What this run is: the sizes every arm shares (printed first and with the table)."""
+    return (f"scale: {a.frames} frames of {a.width}x{a.height} per capture; plain: {len(a.train_seeds)} train, 1 validation, "
+            f"{len(a.test_seeds)} test, {len(a.self_seeds)} self-training captures; phone: {len(a.phone_train_seeds)} train, "
+            f"1 validation, {len(a.phone_test_seeds)} test; every arm: {a.arch} {a.steps} steps, batch {a.batch_size}, "
+            f"crop {a.crop}, lr {a.lr:g}, input {a.input_size}, seed {a.seed}; expand --recipe {a.recipe}"
+            + (f" --set {' '.join(a.overrides)}" if a.overrides else "") + f"; {a.threads or 'default'} thread(s)")
+
+
 DEFAULT_ARMS = "d,a1,b1,c1,f1,a1-split,st-raw,st-pred,st-both,a4,b4,c4,a2,b2,c2,pd,pa1,pb1,pc1"
 
 
@@ -530,6 +539,7 @@ def main() -> None:
 
     args.out.mkdir(parents=True, exist_ok=True)
     bench = Bench(args)
+    log(scale(args))
     t_all = time.perf_counter()
     arms = [a for a in args.arms.split(",") if a]
     rows: list[dict] = []
@@ -551,6 +561,7 @@ def main() -> None:
         confidence[f"{kind}-K{k}"] = bench.confidence_stats(kind, k)
     wall = time.perf_counter() - t_all
 
+    print(f"\n{scale(args)}")
     print("\nHeld-out test captures: Dice (recall for the wound bed), mean over the frames whose truth holds the class; "
           "'labels vs truth' = the arm's training labels against the exact truth of the same frames:\n")
     table = print_table(rows)

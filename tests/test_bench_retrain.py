@@ -52,6 +52,7 @@ def test_every_arm_is_in_the_table(bench: Path) -> None:
     for arm in rows:
         assert f"| {arm} |" in text
     assert "K=1: (b)-(a) tissue mean" in text and "ceiling (d) validation" in text
+    assert f"scale: {FRAMES} frames of {W}x{H} per capture; plain: 2 train" in text and "2 steps, batch 2, crop 32" in text
     assert (bench / "curves.png").is_file()
     for r in rows.values():
         assert r["test"]["classes"]["wound_bed"]["n"] == FRAMES  # every test frame scored
