@@ -276,10 +276,10 @@ def train(
         help="Comma list of sources (name or path) held out for validation: they draw the curves and are not trained on.",
     ),
     val_split: str = typer.Option(
-        "auto", "--val-split",
-        help="Without --val-captures: none (train on every frame given, no validation) | capture (hold out the last "
-             "source) | frames (the last block of each source's frames) | auto (capture with 3+ sources, else frames). "
-             "Held-out frames are not trained on; the log says how many.",
+        "none", "--val-split",
+        help="Without --val-captures: none (train on every frame given, no validation curve) | capture (hold out the "
+             "last source) | frames (the last block of each source's frames) | auto (capture with 3+ sources, else "
+             "frames). Held-out frames are not trained on; the log says how many.",
     ),
     eval_every: Optional[int] = typer.Option(None, "--eval-every", min=1, help="Validate and checkpoint every N steps (default: steps/10)."),
     resume: bool = typer.Option(False, "--resume", help="Continue from OUT/checkpoint.pt up to --steps."),

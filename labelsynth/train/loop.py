@@ -57,7 +57,10 @@ class TrainConfig:
     class_weights: str | None = None  # "id:weight,..." (unnamed classes weigh 1)
     only_annotated: bool = False
     val_captures: list[str] = field(default_factory=list)
-    val_split: str = "auto"  # none | capture | frames | auto, when no val_captures (data.split_by_capture)
+    # none | capture | frames | auto, when no val_captures (data.split_by_capture). "none": validation never
+    # changes the model, and holding out one of 3 single-expert-frame captures cost 0.158 wound-bed and
+    # 0.207 tissue-mean test Dice in bench_retrain (a1-split vs a1, docs/training.md)
+    val_split: str = "none"
     eval_every: int | None = None  # None: steps // 10
     device: str = "auto"
     seed: int = 0

@@ -67,7 +67,7 @@ def test_train_two_sources_writes_everything_and_segment_runs_it(sources, tmp_pa
     before = {p: p.stat().st_mtime_ns for p in sources["cap0"].rglob("*")}
     out = tmp_path / "model"
     result = _invoke(sources["cap0"], sources["h5"], "--out", out, *TINY, "--min-confidence", "0.5",
-                     "--class-weights", "0:0.5", "--expert-weight", "4")
+                     "--class-weights", "0:0.5", "--expert-weight", "4", "--val-split", "auto")
     assert result.exit_code == 0, result.output
     assert "trained 2/2 steps" in result.output
     for name in ("model.onnx", "checkpoint.pt", "train.json", "curves.png"):
@@ -126,6 +126,7 @@ def test_resume_continues_the_step_count(sources, tmp_path):
     assert "resumed at step 2" in result.output
     report = json.loads((out / "train.json").read_text())
     assert report["resumed_from"] == 2 and report["step"] == 4
+    assert report["split"]["train_frames"] == 4 and "training on all 4 frames given" in report["split"]["description"]
     assert [h["step"] for h in report["history"]] == [1, 2, 3, 4]
     assert torch.load(out / "checkpoint.pt", weights_only=True)["step"] == 4
     for option, value in (("--arch", "unet"), ("--encoder", "b1"), ("--input-size", "32x24")):
