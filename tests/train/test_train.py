@@ -440,7 +440,7 @@ def test_train_on_a_merged_dataset_never_sees_a_padded_pixel(tmp_path, monkeypat
         return loaded
 
     monkeypatch.setattr(data.Frame, "load", recording_load)
-    one_step_of_every_frame = ["--steps", "1", "--batch-size", "5", "--crop", "32", "--device", "cpu"]
+    one_step_of_every_frame = ["--steps", "1", "--batch-size", "5", "--crop", "32", "--device", "cpu", "--val-split", "auto"]
     result = _invoke(dataset, "--out", tmp_path / "model", *one_step_of_every_frame)
     assert result.exit_code == 0, result.output
     assert {name for name, _ in seen} == set(frames)  # 5 frames trained on in one step, 1 validated
