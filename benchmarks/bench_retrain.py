@@ -1,27 +1,41 @@
-"""Does training on labelsynth's expanded labels give a better 2D segmenter than the 4 expert frames?
+"""Where do expanded labels train a better 2D segmenter? Scarce experts, self-training, varied frames.
 
-    python benchmarks/bench_retrain.py --out /tmp/retrain            # the README's run
-    python benchmarks/bench_retrain.py --out /tmp/retrain --prepare-only
+    nice -n 5 python benchmarks/bench_retrain.py --out /tmp/retrain                  # the full scale (hours on 2 cores)
+    nice -n 5 python benchmarks/bench_retrain.py --out /tmp/retrain --arms d,a1,b1   # some arms only
+    python benchmarks/bench_retrain.py --out /tmp/retrain --table                    # print what is done
 
-Train captures (``--train-seeds``) and test captures (``--test-seeds``, never trained on) are
-``labelsynth synth`` captures; one more seed (``--val-seed``) is the validation capture of every
-arm (its exact truth, so the validation curves of the arms are comparable). Each train capture is
-expanded once with ``expand --labels annotations`` (``--recipe``, report off). Arms, all with the
-same architecture, optimiser steps, batch, crop and augmentation (``labelsynth.train.train``):
+Captures are ``labelsynth synth`` captures (320x240, 50 frames): train seeds, one validation
+seed (its exact truth validates every arm, so the curves are comparable) and test seeds, never
+trained on. Every arm trains the same SegFormer-b0 with ``labelsynth.train.train`` (same steps,
+batch, crop, augmentation and seed) and is scored by ``segment`` (its ONNX model, as a user runs
+it) on every frame of the test captures against their exact truth (mean Dice over the frames
+whose truth holds the class). Arms (``--arms``; K = expert frames per capture):
 
-  a  the expert-annotated frames of each train capture (the capture folders: what a user has)
-  b  every frame of each train capture as expanded (labels.h5), no confidence weighting
-  c  (b) with each pixel weighted by its labels.h5 confidence
-  d  the exact truth of every frame (a labels.h5 written from the synth truth): the ceiling
+  scarce experts (plain captures)
+    aK  the K expert frames of each train capture (capture folders: what a user has)
+    bK  every frame, expanded from those K by ``labelsynth expand --labels annotations``, unweighted
+    cK  (b') bK with each pixel weighted by its labels.h5 confidence
+    fK  (b'') bK with pixels below a confidence floor (``--floor``) ignored
+    eK  bK with the expert frames' pixels weighted ``--expert-weight`` (labels.h5 marks them annotated)
+    a1-split  a1 with ``train``'s old default split: the last capture held out (trains on 5 frames)
+    d   the exact truth of every frame: the ceiling
+  self-training (plain captures; M0 = a1's model; new captures ``--self-seeds`` with 1 expert frame)
+    st-raw       ``labelsynth selftrain --labels raw``: M0's masks of every frame as they are (i)
+    st-pred      ``--labels predictions``: M0's masks fused by expand (ii); round 2: M1 -> masks -> fuse -> M2
+    st-both      ``--labels both``: (ii) with each capture's expert frame (iii); round 2 likewise
+  varied frames (``synth --phone`` captures: exposure, white balance, blur, noise, JPEG, distance, zoom)
+    pa1, pb1, pc1, pd   as a1, b1, c1, d on phone-like captures, tested on phone-like captures
 
-Score: ``segment`` (the ONNX model, as a user runs it) every frame of every test capture, then
-Dice/recall per class and for the wound bed against the exact truth (``evaluation.metrics``,
-the paper's per-frame population rule, all test frames pooled). Also printed, to explain the
-result: the quality of the labels each arm trains on (expanded vs truth on the train captures)
-and each model's score on one train capture (fit vs generalisation).
+The reduced run measured in docs/training.md (20 frames of 160x120, 3 train / 2 test / 2 self-training
+captures, 400 steps of 4 crops of 96) is the command written there.
 
-Everything is cached under --out (captures, expansions, truth labels.h5, models, masks), so a
-rerun skips what is there; --retrain redoes the arms' models. Results: OUT/results-<arms>.json.
+Expansion and self-training run through the command line (``labelsynth expand ... --no-report``,
+``labelsynth selftrain``), whose contract does not change. Everything is cached under --out
+(captures, views with K expert frames, expansions, models, masks, each arm's scores in
+arms/<arm>.json), so a rerun skips what is done; --retrain redoes the models of the arms asked.
+Printed: one table (test Dice per class, the quality of each arm's training labels against the
+truth, training time), the targets, the confidence of the expanded labels, the ceiling's
+validation curve; OUT/results.json and OUT/curves.png (every arm's validation curve).
 """
 
 from __future__ import annotations
@@ -29,6 +43,7 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import subprocess
 import sys
 import time
 from pathlib import Path
@@ -36,9 +51,10 @@ from pathlib import Path
 import numpy as np
 
 TISSUES = ("granulation", "slough", "necrotic", "epithelial", "unknown")
+PLAIN, PHONE = "plain", "phone"
 
 
-def _seeds(text: str) -> list[int]:
+def _ints(text: str) -> list[int]:
     return [int(s) for s in text.split(",") if s.strip()]
 
 
@@ -46,65 +62,320 @@ def log(msg: str) -> None:
     print(f"[{time.strftime('%H:%M:%S')}] {msg}", flush=True)
 
 
-# --- data --------------------------------------------------------------------------------------
-def make_capture(root: Path, seed: int, args) -> Path:
-    """OUT/captures/seed<S>/{capture,truth}, made once."""
-    from labelsynth.evaluation.synth import SynthConfig, synthesize
+def fmt(v) -> str:
+    return "-" if v is None else f"{v:.3f}"
 
-    out = root / "captures" / f"seed{seed}"
-    if not out.exists():
+
+class Bench:
+    """The cached pieces: captures, views, expansions, models, scores."""
+
+    def __init__(self, args) -> None:
+        self.args = args
+        self.root: Path = args.out
+        self.seeds = {
+            PLAIN: {"train": args.train_seeds, "val": [args.val_seed], "test": args.test_seeds, "self": args.self_seeds},
+            PHONE: {"train": args.phone_train_seeds, "val": [args.phone_val_seed], "test": args.phone_test_seeds},
+        }
+        self._classes = None
+
+    # --- data ---------------------------------------------------------------------------------
+    def synth(self, kind: str, seed: int) -> Path:
+        """OUT/captures/<kind>/seed<S>/{capture,truth}, made once (no annotations: views hold them)."""
+        from labelsynth.evaluation.synth import SynthConfig, synthesize
+
+        out = self.root / "captures" / kind / f"seed{seed}"
+        if not out.exists():
+            a = self.args
+            base = dict(frames=a.frames, annotated=0, width=a.width, height=a.height, seed=seed)
+            cfg = SynthConfig.phone(**base) if kind == PHONE else SynthConfig(**base)
+            t0 = time.perf_counter()
+            synthesize(out, cfg, progress=False)
+            log(f"synth {kind} seed {seed}: {time.perf_counter() - t0:.0f} s")
+        return out
+
+    def view(self, kind: str, seed: int, k: int | None) -> Path:
+        """OUT/views/<kind>-K<k>/seed<S>: the capture with K expert frames (their exact truth,
+        spread as ``synth --annotated K`` spreads them); k=None: every frame's truth."""
+        from labelsynth.capture.view import capture_view
+        from labelsynth.evaluation.synth import annotated_indices
+
+        base = self.synth(kind, seed)
+        out = self.root / "views" / f"{kind}-{'all' if k is None else f'K{k}'}" / f"seed{seed}"
+        if not out.exists():
+            names = sorted(p.stem for p in (base / "truth").glob("*.png"))
+            pick = range(len(names)) if k is None else annotated_indices(len(names), k)
+            capture_view(base / "capture", out, annotations={names[i]: base / "truth" / f"{names[i]}.png" for i in pick})
+        return out
+
+    def expand(self, kind: str, seed: int, k: int) -> Path:
+        """OUT/expanded/<kind>-K<k>/seed<S>: ``labelsynth expand VIEW --labels annotations --no-report``."""
+        out = self.root / "expanded" / f"{kind}-K{k}" / f"seed{seed}"
+        if not (out / "labels.h5").is_file():
+            view = self.view(kind, seed, k)
+            cmd = ["expand", str(view), "--out", str(out), "--labels", "annotations", "--recipe", self.args.recipe,
+                   "--no-report", "--device", self.args.device, "--force"]
+            for o in self.args.overrides:
+                cmd += ["--set", o]
+            self.cli(cmd, f"expand-{kind}-K{k}-seed{seed}")
+        return out
+
+    def cli(self, cmd: list[str], name: str) -> float:
+        """Run ``labelsynth CMD`` (this checkout's, via ``python -m labelsynth.cli``); output in OUT/logs."""
+        logs = self.root / "logs"
+        logs.mkdir(parents=True, exist_ok=True)
         t0 = time.perf_counter()
-        synthesize(out, SynthConfig(frames=args.frames, annotated=args.annotated, width=args.width,
-                                    height=args.height, seed=seed), progress=False)
-        log(f"synth seed {seed}: {time.perf_counter() - t0:.0f} s")
+        log(f"labelsynth {' '.join(cmd)}")
+        with open(logs / f"{name}.log", "w") as fh:
+            rc = subprocess.call([sys.executable, "-m", "labelsynth.cli", *cmd], stdout=fh, stderr=subprocess.STDOUT)
+        seconds = time.perf_counter() - t0
+        if rc != 0:
+            tail = (logs / f"{name}.log").read_text().strip().splitlines()[-3:]
+            raise SystemExit(f"{name} failed (exit {rc}): {' / '.join(tail)}")
+        log(f"{name}: {seconds:.0f} s")
+        return seconds
+
+    @property
+    def classes(self):
+        if self._classes is None:
+            from labelsynth.classes import ClassMap
+
+            self._classes = ClassMap.of_capture(self.synth(PLAIN, self.args.test_seeds[0]) / "capture")
+        return self._classes
+
+    def val_tissues(self, kind: str) -> list[str]:
+        """The tissues the validation capture's truth holds (in any frame)."""
+        from labelsynth.capture.masks import read_mask
+
+        truth = self.synth(kind, self.seeds[kind]["val"][0]) / "truth"
+        ids = set()
+        for p in truth.glob("*.png"):
+            ids |= set(np.unique(read_mask(p, None, self.classes)).tolist())
+        return [c.name for c in self.classes.classes if c.id in ids and c.name in TISSUES]
+
+    # --- scoring ------------------------------------------------------------------------------
+    def score_dir(self, masks: Path, truth: Path, names: list[str] | None = None):
+        from labelsynth.capture.masks import read_mask
+        from labelsynth.metrics import score_frames
+
+        names = names or sorted(p.stem for p in truth.glob("*.png"))
+        preds = [read_mask(masks / f"{n}.png", None, self.classes) for n in names]
+        truths = [read_mask(truth / f"{n}.png", None, self.classes) for n in names]
+        return score_frames(preds, truths, self.classes, [f"{truth.parent.name}/{n}" for n in names])
+
+    def test_scores(self, arm: str, model: Path, kind: str) -> tuple[dict, float, int]:
+        """``segment`` every frame of the test captures with ``model``; Dice against the truth."""
+        from labelsynth.train.segment import segment_capture
+
+        scores, seconds, frames = [], 0.0, 0
+        for s in self.seeds[kind]["test"]:
+            base = self.synth(kind, s)
+            out = self.root / "segment" / arm / f"{kind}-seed{s}"
+            if not out.is_dir():
+                rep = segment_capture(base / "capture", model, out, device=self.args.device, progress=False)
+                seconds, frames = seconds + rep.seconds, frames + rep.frames
+            scores.append(self.score_dir(out, base / "truth"))
+        return summary(pool(scores)), seconds, frames
+
+    def label_quality(self, mask_dirs: list[tuple[Path, Path]]) -> dict:
+        """Training labels (mask folders) against the truth of the same frames, pooled."""
+        return summary(pool([self.score_dir(m, t) for m, t in mask_dirs]))
+
+    def confidence_stats(self, kind: str, k: int) -> dict:
+        """How well the expanded labels' confidence separates right from wrong pixels (train seeds)."""
+        from labelsynth.capture.masks import read_mask
+        from labelsynth.export.labels_h5 import LabelsReader
+
+        floor = self.args.floor
+        right_conf, wrong_conf, n, n_right, kept, kept_right = [], [], 0, 0, 0, 0
+        for s in self.seeds[kind]["train"]:
+            reader = LabelsReader(self.expand(kind, s, k) / "labels.h5")
+            truth_dir = self.synth(kind, s) / "truth"
+            for i, name in enumerate(reader.frame_names):
+                _, mask, conf = reader.read(i)
+                truth = read_mask(truth_dir / f"{Path(name).stem}.png", None, self.classes)
+                ok = mask == truth
+                conf = conf.astype(np.float32)
+                right_conf.append(float(conf[ok].sum()))
+                wrong_conf.append(float(conf[~ok].sum()))
+                n += ok.size
+                n_right += int(ok.sum())
+                keep = conf >= floor
+                kept += int(keep.sum())
+                kept_right += int((ok & keep).sum())
+        n_wrong = n - n_right
+        return {"pixel_accuracy": n_right / n, "mean_conf_right": sum(right_conf) / max(1, n_right),
+                "mean_conf_wrong": sum(wrong_conf) / max(1, n_wrong), "floor": floor, "kept": kept / n,
+                "accuracy_kept": kept_right / max(1, kept),
+                "wrong_removed": 1 - (kept - kept_right) / max(1, n_wrong)}
+
+    # --- training -----------------------------------------------------------------------------
+    def train_cfg(self, **over):
+        from labelsynth.train import TrainConfig
+
+        a = self.args
+        base = dict(arch=a.arch, encoder=a.encoder, steps=a.steps, batch_size=a.batch_size, crop=a.crop, lr=a.lr,
+                    confidence_weight=False, min_confidence=0.0, expert_weight=1.0, val_split="none",
+                    eval_every=max(1, a.steps // 10), device=a.device, seed=a.seed, input_size=a.input_size)
+        return TrainConfig(**{**base, **over})
+
+    def train(self, arm: str, sources: list[Path], kind: str, **over) -> dict:
+        from labelsynth.train import train
+
+        model_dir = self.root / "models" / arm
+        report = model_dir / "train.json"
+        if report.exists() and (model_dir / "model.onnx").exists() and not self.args.retrain_arm(arm):
+            data = json.loads(report.read_text())
+            if data["step"] == self.args.steps and not data["interrupted"]:
+                return data
+        val = self.view(kind, self.seeds[kind]["val"][0], None)
+        holdout = over.pop("holdout", False)
+        cfg = self.train_cfg(**over) if holdout else self.train_cfg(val_captures=[str(val)], **over)
+        t0 = time.perf_counter()
+        train([*sources] if holdout else [*sources, val], model_dir, cfg, force=True, progress=False,
+              log=lambda m: log(f"{arm}: {m}"))
+        log(f"{arm}: trained in {time.perf_counter() - t0:.0f} s")
+        seg = self.root / "segment" / arm
+        if seg.exists():  # masks of an earlier model
+            import shutil
+
+            shutil.rmtree(seg)
+        return json.loads(report.read_text())
+
+    def selftrain(self, mode: str) -> Path:
+        """``labelsynth selftrain`` from M0 (a1's model) on the self-training captures (views with
+        one expert frame), held out: the validation capture's every frame."""
+        a = self.args
+        out = self.root / "selftrain" / mode
+        m0 = self.root / "models" / "a1" / "model.onnx"
+        if not m0.is_file():
+            self.run_arm("a1")
+        rounds = {"raw": 1, "predictions": a.rounds, "both": a.both_rounds}[mode]
+        done = out / "selftrain.json"
+        arm = "st-" + {"predictions": "pred"}.get(mode, mode)
+        if done.is_file() and len(json.loads(done.read_text()).get("rounds", [])) == rounds + 1 \
+                and not a.retrain_arm(arm):
+            return out
+        caps = [str(self.view(PLAIN, s, 1)) for s in self.seeds[PLAIN]["self"]]
+        cmd = ["selftrain", *caps, "--model", str(m0), "--out", str(out), "--labels", mode, "--rounds", str(rounds),
+               "--holdout", str(self.view(PLAIN, a.val_seed, None)), "--recipe", a.recipe, "--device", a.device,
+               "--steps", str(a.steps), "--batch-size", str(a.batch_size), "--crop", str(a.crop), "--lr", str(a.lr),
+               "--input-size", a.input_size, "--no-confidence-weight", "--seed", str(a.seed),
+               "--eval-every", str(max(1, a.steps // 10))]
+        for o in a.overrides:
+            cmd += ["--set", o]
+        if a.retrain_arm(arm):
+            cmd.append("--force")
+        self.cli(cmd, f"selftrain-{mode}")
+        return out
+
+    # --- arms ---------------------------------------------------------------------------------
+    def run_arm(self, arm: str) -> dict:
+        """Train (or read) the arm's model(s), score them; OUT/arms/<arm>.json (one entry per row)."""
+        cache = self.root / "arms" / f"{arm}.json"
+        if cache.is_file() and not self.args.retrain_arm(arm):
+            rows = json.loads(cache.read_text())
+            if all(r["steps"] == self.args.steps for r in rows):  # else the arm is redone at these steps
+                return rows
+        rows = self._run_arm(arm)
+        cache.parent.mkdir(parents=True, exist_ok=True)
+        cache.write_text(json.dumps(rows, indent=2))
+        return rows
+
+    def _row(self, arm: str, regime: str, what: str, kind: str, model_dir: Path, report: dict, quality: dict | None,
+             **extra) -> dict:
+        test, seg_s, seg_n = self.test_scores(arm if "round" not in extra else f"{arm}-r{extra['round']}",
+                                              model_dir / "model.onnx", kind)
+        row = {"arm": arm, "regime": regime, "what": what, "kind": kind, "train_frames": report["split"]["train_frames"],
+               "split": report["split"]["description"], "train_s": report["times"]["train_s"], "steps": report["step"],
+               "test": test, "labels": quality, "segment_fps": seg_n / seg_s if seg_s else None,
+               "model_dir": str(model_dir), **extra}
+        log(f"{arm}{' round ' + str(extra['round']) if 'round' in extra else ''}: test wound bed Dice "
+            f"{fmt(test['classes']['wound_bed']['dice'])}, tissue mean {fmt(test['tissue_mean_dice'])}")
+        return row
+
+    def _run_arm(self, arm: str) -> list[dict]:
+        a = self.args
+        kind = PHONE if arm.startswith("p") else PLAIN
+        name = arm[1:] if kind == PHONE else arm
+        train_seeds = self.seeds[kind]["train"]
+        regime = "varied frames" if kind == PHONE else "scarce experts"
+        if name == "d":
+            sources = [self.view(kind, s, None) for s in train_seeds]
+            report = self.train(arm, sources, kind)
+            return [self._row(arm, regime, "exact truth of every frame (ceiling)", kind, self.root / "models" / arm,
+                              report, {"exact": True})]
+        if name.startswith("a"):
+            k = int(name[1:].split("-")[0])
+            sources = [self.view(kind, s, k) for s in train_seeds]
+            if name.endswith("-split"):
+                report = self.train(arm, sources, kind, holdout=True, val_split="capture")
+                what = f"{k} expert frame(s) per capture, the last capture held out for validation"
+            else:
+                report = self.train(arm, sources, kind)
+                what = f"{k} expert frame(s) per capture"
+            return [self._row(arm, regime, what, kind, self.root / "models" / arm, report, {"exact": True}, k=k)]
+        if name[0] in "bcfe":
+            k = int(name[1:])
+            sources = [self.expand(kind, s, k) / "labels.h5" for s in train_seeds]
+            over, what = {}, f"every frame expanded from {k} expert frame(s)"
+            if name[0] == "c":
+                over, what = {"confidence_weight": True}, what + ", confidence-weighted"
+            elif name[0] == "f":
+                over, what = {"min_confidence": a.floor}, what + f", confidence >= {a.floor:g}"
+            elif name[0] == "e":
+                over, what = {"expert_weight": a.expert_weight}, what + f", its expert frames weighted {a.expert_weight:g}x"
+            report = self.train(arm, sources, kind, **over)
+            quality = self.label_quality([(self.expand(kind, s, k) / "masks", self.synth(kind, s) / "truth")
+                                          for s in train_seeds])
+            return [self._row(arm, regime, what, kind, self.root / "models" / arm, report, quality, k=k)]
+        if arm.startswith("st-"):
+            mode = {"raw": "raw", "pred": "predictions", "both": "both"}[arm[3:]]
+            out = self.selftrain(mode)
+            state = json.loads((out / "selftrain.json").read_text())
+            names = [Path(c).name for c in state["settings"]["captures"]]
+            rows = []
+            for r in range(1, len(state["rounds"])):
+                here = out / f"round{r}"
+                truth = [self.synth(PLAIN, s) / "truth" for s in self.seeds[PLAIN]["self"]]
+                label_dirs = [here / "predictions" / n for n in names] if mode == "raw" else \
+                    [here / "expanded" / n / "masks" for n in names]
+                quality = self.label_quality(list(zip(label_dirs, truth)))
+                quality["predictions"] = self.label_quality(list(zip([here / "predictions" / n for n in names], truth)))
+                report = json.loads((here / "model" / "train.json").read_text())
+                source = "M0" if r == 1 else f"M{r - 1}"
+                what = {"raw": f"{source}'s masks of every frame, raw",
+                        "predictions": f"{source}'s masks fused by expand --labels predictions",
+                        "both": f"{source}'s masks + 1 expert frame fused by expand --labels both"}[mode]
+                rows.append(self._row(arm, "self-training", what, PLAIN, here / "model", report, quality, round=r))
+            return rows
+        raise SystemExit(f"unknown arm {arm!r}")
+
+
+def _model_dir(root: Path, row: dict) -> Path:
+    if "model_dir" in row:
+        return Path(row["model_dir"])
+    if row["arm"].startswith("st-"):
+        mode = {"raw": "raw", "pred": "predictions", "both": "both"}[row["arm"][3:]]
+        return root / "selftrain" / mode / f"round{row['round']}" / "model"
+    return root / "models" / row["arm"]
+
+
+def curve(root: Path, row: dict, present: list[str]) -> list[dict]:
+    """The arm's validation curve from its train.json: loss, and the mean Dice of the tissues the
+    validation capture's truth holds (a tissue it lacks has no Dice worth averaging, only false alarms)."""
+    report = json.loads((_model_dir(root, row) / "train.json").read_text())
+    out = []
+    for h in report["history"]:
+        dice = h.get("val_dice") or {}
+        vals = [dice[t] for t in present if dice.get(t) is not None]
+        out.append({"step": h["step"], "val_loss": h.get("val_loss"),
+                    "val_tissue_mean": float(np.mean(vals)) if vals else None})
     return out
-
-
-def expand_capture(root: Path, seed: int, args) -> Path:
-    """OUT/expanded/seed<S>/labels.h5 from ``expand --labels annotations``, made once."""
-    from labelsynth.pipeline import expand
-
-    out = root / "expanded" / f"seed{seed}"
-    if not out.exists():
-        t0 = time.perf_counter()
-        expand(root / "captures" / f"seed{seed}" / "capture", out, labels="annotations", recipe=args.recipe,
-               device=args.device, overrides=args.overrides, progress=False, report=False)
-        log(f"expand seed {seed} (--recipe {args.recipe} --no-report): {time.perf_counter() - t0:.0f} s")
-    return out / "labels.h5"
-
-
-def truth_labels(root: Path, seed: int) -> Path:
-    """OUT/truth/seed<S>/labels.h5: the capture's frames with their exact truth masks (confidence 1)."""
-    from labelsynth.capture import load_capture
-    from labelsynth.capture.masks import read_mask
-    from labelsynth.export import write_labels_h5
-
-    path = root / "truth" / f"seed{seed}" / "labels.h5"
-    if not path.exists():
-        cap_dir = root / "captures" / f"seed{seed}"
-        cap = load_capture(cap_dir / "capture")
-        path.parent.mkdir(parents=True, exist_ok=True)
-        write_labels_h5(path, images=lambda i: cap.load_image(i),
-                        masks=lambda i: read_mask(cap_dir / "truth" / f"{cap.frames[i].name}.png", None, cap.classes),
-                        frame_names=cap.names, classes=cap.classes, annotated=np.ones(len(cap), dtype=bool),
-                        source=cap_dir / "capture")
-    return path
-
-
-def score_masks(mask_dir: Path, truth_dir: Path, classes, names: list[str] | None = None):
-    """Scores of mask_dir/<stem>.png against truth_dir/<stem>.png (every mask, or ``names``)."""
-    from labelsynth.capture.masks import read_mask
-    from labelsynth.evaluation.metrics import score_frames
-
-    names = names or sorted(p.stem for p in mask_dir.glob("*.png"))
-    preds = [read_mask(mask_dir / f"{n}.png", None, classes) for n in names]
-    truths = [read_mask(truth_dir / f"{n}.png", None, classes) for n in names]
-    return score_frames(preds, truths, classes, [f"{truth_dir.parent.name}/{n}" for n in names])
 
 
 def pool(scores: list):
     """One Scores over several captures' frames."""
-    from labelsynth.evaluation.metrics import Scores
+    from labelsynth.metrics import Scores
 
     return Scores(keys=scores[0].keys, frames=[f for s in scores for f in s.frames],
                   per_frame=[fc for s in scores for fc in s.per_frame])
@@ -114,187 +385,218 @@ def summary(scores) -> dict:
     """Per-class mean Dice/recall (paper rule) plus the mean Dice of the tissue classes present."""
     rows = {r["class"]: r for r in scores.table()}
     present = [t for t in TISSUES if t in rows and rows[t]["n"]]
-    out = {"classes": {k: {"dice": r["dice"], "recall": r["recall"], "n": r["n"]} for k, r in rows.items()},
-           "tissue_mean_dice": float(np.mean([rows[t]["dice"] for t in present])) if present else None,
-           "tissues_present": present}
+    return {"classes": {k: {"dice": r["dice"], "recall": r["recall"], "n": r["n"]} for k, r in rows.items()},
+            "tissue_mean_dice": float(np.mean([rows[t]["dice"] for t in present])) if present else None,
+            "tissues_present": present}
+
+
+# --- report ------------------------------------------------------------------------------------
+def _label(row: dict) -> str:
+    return f"{row['arm']}" + (f" r{row['round']}" if "round" in row else "")
+
+
+def print_table(rows: list[dict]) -> str:
+    lines = ["| regime | arm | training labels | frames | labels vs truth: wound bed / tissue mean | "
+             "test wound bed Dice / recall | " + " | ".join(TISSUES) + " | tissue mean | train s |",
+             "|---" * (len(TISSUES) + 8) + "|"]
+    for r in rows:
+        lab = r["labels"] or {}
+        if lab.get("exact"):
+            quality = "exact"
+        else:
+            quality = f"{fmt(lab['classes']['wound_bed']['dice'])} / {fmt(lab['tissue_mean_dice'])}"
+        c = r["test"]["classes"]
+        cells = [fmt(c[t]["dice"]) if c.get(t) and c[t]["n"] else "-" for t in TISSUES]
+        lines.append(f"| {r['regime']} | {_label(r)} | {r['what']} | {r['train_frames']} | {quality} | "
+                     f"{fmt(c['wound_bed']['dice'])} / {fmt(c['wound_bed']['recall'])} | " + " | ".join(cells)
+                     + f" | **{fmt(r['test']['tissue_mean_dice'])}** | {r['train_s']:.0f} |")
+    text = "\n".join(lines)
+    print(text)
+    return text
+
+
+def targets(by: dict[str, dict]) -> list[str]:
+    """The issue's targets, each with its numbers (only where the arms exist)."""
+    out = []
+
+    def wb(a):
+        return by[a]["test"]["classes"]["wound_bed"]["dice"]
+
+    def tm(a):
+        return by[a]["test"]["tissue_mean_dice"]
+
+    if all(x in by for x in ("a1", "b1", "d")):
+        gap = wb("d") - wb("a1")
+        if gap > 0:
+            closed = (wb("b1") - wb("a1")) / gap
+            gap_text = f"(b) closes {closed:.0%} of it (target >= 50%: {'met' if closed >= 0.5 else 'NOT met'})"
+        else:
+            gap_text = "(d) is not above (a): no gap to close (target NOT met; the ceiling shows no room at this scale)"
+        out.append(f"K=1: (b)-(a) tissue mean {tm('b1') - tm('a1'):+.3f} (target >= +0.05: "
+                   f"{'met' if tm('b1') - tm('a1') >= 0.05 else 'NOT met'}); wound-bed gap of (a) to (d) "
+                   f"{gap:+.3f}, {gap_text}")
+    for k in (2, 4):
+        if f"a{k}" in by and f"b{k}" in by:
+            line = (f"K={k}: (b)-(a) wound bed {wb(f'b{k}') - wb(f'a{k}'):+.3f}, tissue mean "
+                    f"{tm(f'b{k}') - tm(f'a{k}'):+.3f}")
+            if k == 4:
+                worst = min(wb("b4") - wb("a4"), tm("b4") - tm("a4"))
+                line += f" (target: no worse than -0.005: {'met' if worst >= -0.005 else 'NOT met'})"
+            out.append(line)
+    if "st-raw r1" in by and "st-pred r1" in by:
+        dw, dt = wb("st-pred r1") - wb("st-raw r1"), tm("st-pred r1") - tm("st-raw r1")
+        out.append(f"self-training: (ii)-(i) wound bed {dw:+.3f} (target >= +0.03: {'met' if dw >= 0.03 else 'NOT met'}), "
+                   f"tissue mean {dt:+.3f} (target >= +0.05: {'met' if dt >= 0.05 else 'NOT met'})")
+    for mode in ("pred", "both"):
+        if f"st-{mode} r1" in by and f"st-{mode} r2" in by:
+            dw = wb(f"st-{mode} r2") - wb(f"st-{mode} r1")
+            dt = tm(f"st-{mode} r2") - tm(f"st-{mode} r1")
+            out.append(f"self-training ({'ii' if mode == 'pred' else 'iii'}): round 2 - round 1 wound bed {dw:+.3f}, "
+                       f"tissue mean {dt:+.3f} (target: not below: {'met' if min(dw, dt) >= 0 else 'NOT met'})")
     return out
 
 
-# --- arms --------------------------------------------------------------------------------------
-ARMS = {
-    "a": "4 expert frames per train capture",
-    "b": "every frame, expanded (annotations)",
-    "c": "(b) + confidence weighting",
-    "d": "exact truth of every frame (ceiling)",
-}
+def plot_curves(rows: list[dict], path: Path) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, (ax, ax_loss) = plt.subplots(1, 2, figsize=(14, 5))
+    for r in rows:
+        pts = [(c["step"], c["val_tissue_mean"], c["val_loss"]) for c in r["curve"] if c["val_tissue_mean"] is not None]
+        if pts:
+            steps, dice, loss = zip(*pts)
+            width = 2.5 if r["arm"] in ("d", "pd") else 1.2
+            ax.plot(steps, dice, label=_label(r), lw=width)
+            ax_loss.plot(steps, loss, label=_label(r), lw=width)
+    ax.set_xlabel("step")
+    ax.set_ylabel("validation Dice, mean of the tissues in its truth")
+    ax.set_ylim(0.4, 1)
+    ax.legend(fontsize=7, ncol=2)
+    ax_loss.set_xlabel("step")
+    ax_loss.set_ylabel("validation loss (CE + Dice)")
+    fig.tight_layout()
+    fig.savefig(path, dpi=100)
+    plt.close(fig)
 
 
-def arm_sources(arm: str, root: Path, train_seeds: list[int]) -> tuple[list[Path], bool]:
-    """The arm's training sources and whether pixels are weighted by confidence."""
-    if arm == "a":
-        return [root / "captures" / f"seed{s}" / "capture" for s in train_seeds], False
-    if arm in ("b", "c"):
-        return [root / "expanded" / f"seed{s}" / "labels.h5" for s in train_seeds], arm == "c"
-    if arm == "d":
-        return [root / "truth" / f"seed{s}" / "labels.h5" for s in train_seeds], False
-    raise SystemExit(f"unknown arm {arm!r} (expected a, b, c, d)")
+def scale(a) -> str:
+    """What this run is: the sizes every arm shares (printed first and with the table)."""
+    return (f"scale: {a.frames} frames of {a.width}x{a.height} per capture; plain: {len(a.train_seeds)} train, 1 validation, "
+            f"{len(a.test_seeds)} test, {len(a.self_seeds)} self-training captures; phone: {len(a.phone_train_seeds)} train, "
+            f"1 validation, {len(a.phone_test_seeds)} test; every arm: {a.arch} {a.steps} steps, batch {a.batch_size}, "
+            f"crop {a.crop}, lr {a.lr:g}, input {a.input_size}, seed {a.seed}; expand --recipe {a.recipe}"
+            + (f" --set {' '.join(a.overrides)}" if a.overrides else "") + f"; {a.threads or 'default'} thread(s)")
 
 
-def run_arm(arm: str, root: Path, args) -> dict:
-    from labelsynth.train import TrainConfig, train
-
-    sources, conf_weight = arm_sources(arm, root, args.train_seeds)
-    val = root / "truth" / f"seed{args.val_seed}" / "labels.h5"
-    model_dir = root / "models" / arm
-    result_file = model_dir / "train.json"
-    if result_file.exists() and (model_dir / "model.onnx").exists() and not args.retrain:
-        report = json.loads(result_file.read_text())
-        log(f"arm {arm}: cached model ({report['times']['train_s']:.0f} s of training)")
-        return report
-    cfg = TrainConfig(arch=args.arch, encoder=args.encoder, steps=args.steps, batch_size=args.batch_size,
-                      crop=args.crop, lr=args.lr, confidence_weight=conf_weight, val_captures=[str(val)],
-                      eval_every=max(1, args.steps // 2), device=args.device, seed=args.seed,
-                      input_size=args.input_size)
-    t0 = time.perf_counter()
-    train([*sources, val], model_dir, cfg, force=True, progress=False, log=lambda m: log(f"arm {arm}: {m}"))
-    log(f"arm {arm}: trained in {time.perf_counter() - t0:.0f} s")
-    return json.loads(result_file.read_text())
-
-
-def segment_and_score(arm: str, root: Path, seeds: list[int], classes, args, tag: str) -> tuple[dict, float, int]:
-    from labelsynth.train.segment import segment_capture
-
-    scores, seconds, frames = [], 0.0, 0
-    for s in seeds:
-        cap_dir = root / "captures" / f"seed{s}"
-        out = root / "segment" / arm / f"seed{s}"
-        if not out.exists() or args.retrain:
-            rep = segment_capture(cap_dir / "capture", root / "models" / arm / "model.onnx", out, device=args.device,
-                                  progress=False)
-            seconds += rep.seconds
-            frames += rep.frames
-        scores.append(score_masks(out, cap_dir / "truth", classes))
-    return summary(pool(scores)), seconds, frames
-
-
-# --- table -------------------------------------------------------------------------------------
-def fmt(v) -> str:
-    return "-" if v is None else f"{v:.3f}"
-
-
-def print_table(results: dict, label_quality: dict | None) -> None:
-    arms = [a for a in ARMS if a in results]
-    keys = ["wound_bed", *TISSUES]
-    print()
-    print("Held-out test captures (Dice / recall, mean over frames whose truth has the class):")
-    print("| arm | training labels | wound bed | " + " | ".join(TISSUES) + " | tissue mean Dice | train s |")
-    print("|---" * (len(keys) + 4) + "|")
-    for a in arms:
-        r = results[a]
-        cells = []
-        for k in keys:
-            c = r["test"]["classes"].get(k)
-            cells.append("-" if not c or not c["n"] else f"{fmt(c['dice'])} / {fmt(c['recall'])}")
-        print(f"| {a} | {ARMS[a]} | " + " | ".join(cells) + f" | {fmt(r['test']['tissue_mean_dice'])} | "
-              f"{r['train_s']:.0f} |")
-    ns = {k: results[arms[0]]["test"]["classes"][k]["n"] for k in keys if k in results[arms[0]]["test"]["classes"]}
-    print("population n (frames): " + ", ".join(f"{k} {n}" for k, n in ns.items()))
-    if all(a in results for a in "abd"):
-        wb = {a: results[a]["test"]["classes"]["wound_bed"]["dice"] for a in "abd"}
-        tm = {a: results[a]["test"]["tissue_mean_dice"] for a in "abd"}
-        print(f"(b) - (a): wound bed {wb['b'] - wb['a']:+.3f} (target >= +0.05), tissue mean {tm['b'] - tm['a']:+.3f} "
-              f"(target >= +0.05); (d) - (b): wound bed {wb['d'] - wb['b']:+.3f}, tissue mean {tm['d'] - tm['b']:+.3f} "
-              "(target <= 0.03)")
-    print()
-    print("Each model on its first train capture (fit) vs the test captures (generalisation), Dice:")
-    print("| arm | wound bed fit | wound bed test | tissue mean fit | tissue mean test | validation tissue mean Dice (last step) |")
-    print("|---|---|---|---|---|---|")
-    for a in arms:
-        r = results[a]
-        print(f"| {a} | {fmt(r['fit']['classes']['wound_bed']['dice'])} | {fmt(r['test']['classes']['wound_bed']['dice'])} | "
-              f"{fmt(r['fit']['tissue_mean_dice'])} | {fmt(r['test']['tissue_mean_dice'])} | {fmt(r.get('val_tissue_mean'))} |")
-    if label_quality:
-        print()
-        print("Label quality: the expanded labels of the train captures vs truth (every frame; Dice / recall):")
-        for k in ["wound_bed", *TISSUES]:
-            c = label_quality["classes"].get(k)
-            if c and c["n"]:
-                print(f"  {k}: {fmt(c['dice'])} / {fmt(c['recall'])} (n={c['n']})")
-        print(f"  tissue mean Dice {fmt(label_quality['tissue_mean_dice'])}")
+DEFAULT_ARMS = "d,a1,b1,c1,f1,a1-split,st-raw,st-pred,st-both,a4,b4,c4,a2,b2,c2,pd,pa1,pb1,pc1"
 
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--out", type=Path, required=True)
-    ap.add_argument("--train-seeds", type=_seeds, default=_seeds("101,102,103"))
+    ap.add_argument("--arms", default=DEFAULT_ARMS, help="comma list, run in this order")
+    ap.add_argument("--train-seeds", type=_ints, default=_ints("101,102,103,104,105,106"))
     ap.add_argument("--val-seed", type=int, default=201)
-    ap.add_argument("--test-seeds", type=_seeds, default=_seeds("301,302"))
+    ap.add_argument("--test-seeds", type=_ints, default=_ints("301,302,303"))
+    ap.add_argument("--self-seeds", type=_ints, default=_ints("111,112,113,114,115,116"))
+    ap.add_argument("--phone-train-seeds", type=_ints, default=_ints("121,122,123,124,125,126"))
+    ap.add_argument("--phone-val-seed", type=int, default=221)
+    ap.add_argument("--phone-test-seeds", type=_ints, default=_ints("321,322,323"))
     ap.add_argument("--frames", type=int, default=50)
-    ap.add_argument("--annotated", type=int, default=4)
-    ap.add_argument("--width", type=int, default=640)
-    ap.add_argument("--height", type=int, default=480)
+    ap.add_argument("--width", type=int, default=320)
+    ap.add_argument("--height", type=int, default=240)
     ap.add_argument("--recipe", default="fast", help="expand recipe (report off)")
     ap.add_argument("--set", dest="overrides", action="append", default=[], help="expand recipe override")
-    ap.add_argument("--arms", default="abcd")
+    ap.add_argument("--floor", type=float, default=0.5, help="confidence floor of the fK arms")
+    ap.add_argument("--expert-weight", type=float, default=4.0, help="expert-frame weight of the eK arms")
+    ap.add_argument("--rounds", type=int, default=2, help="self-training rounds of st-pred")
+    ap.add_argument("--both-rounds", type=int, default=2, help="self-training rounds of st-both (more continue a run)")
     ap.add_argument("--arch", default="segformer")
     ap.add_argument("--encoder", default=None)
     ap.add_argument("--steps", type=int, default=1000)
     ap.add_argument("--batch-size", type=int, default=4)
     ap.add_argument("--crop", type=int, default=192)
     ap.add_argument("--lr", type=float, default=6e-4)
-    ap.add_argument("--input-size", default="320x240", help="frames are resized to this for training and segment")
+    ap.add_argument("--input-size", default="320x240")
     ap.add_argument("--device", default="cpu")
     ap.add_argument("--seed", type=int, default=0)
-    ap.add_argument("--prepare-only", action="store_true", help="make the captures and expansions, then stop")
-    ap.add_argument("--retrain", action="store_true", help="redo the models and their masks")
+    ap.add_argument("--retrain", default="", help="comma list of arms whose models are redone ('all' for every arm)")
+    ap.add_argument("--table", action="store_true", help="only print the table of the arms already done")
+    ap.add_argument("--threads", type=int, default=0,
+                    help="compute threads of this process and of the commands it runs (0: the libraries' default). "
+                         "On 2 cores shared with other jobs (load 17), 1 thread ran a training step in 2.7 s, 2 in 14.5 s")
     args = ap.parse_args()
+    if args.threads:
+        for var in ("OMP_NUM_THREADS", "MKL_NUM_THREADS", "OPENBLAS_NUM_THREADS"):
+            os.environ[var] = str(args.threads)
+        import cv2
+        import torch
+
+        torch.set_num_threads(args.threads)
+        cv2.setNumThreads(args.threads)
+    retrain = set(args.retrain.split(",")) if args.retrain else set()
+    args.retrain_arm = lambda arm: "all" in retrain or arm in retrain
     os.environ.setdefault("NO_ALBUMENTATIONS_UPDATE", "1")
+    every = [*args.train_seeds, args.val_seed, *args.test_seeds, *args.self_seeds]
+    phone = [*args.phone_train_seeds, args.phone_val_seed, *args.phone_test_seeds]
+    if len(set(every)) != len(every) or len(set(phone)) != len(phone):
+        raise SystemExit("train, validation, test and self-training seeds must all differ")
 
-    root = args.out
-    root.mkdir(parents=True, exist_ok=True)
+    args.out.mkdir(parents=True, exist_ok=True)
+    bench = Bench(args)
+    log(scale(args))
     t_all = time.perf_counter()
-    every = [*args.train_seeds, args.val_seed, *args.test_seeds]
-    if len(set(every)) != len(every):
-        raise SystemExit("train, validation and test seeds must all differ")
-    for s in every:
-        make_capture(root, s, args)
-    expanded = any(a in args.arms for a in "bc")  # only arms b and c train on expansions
-    for s in args.train_seeds if expanded else []:
-        expand_capture(root, s, args)
-    for s in [*args.train_seeds, args.val_seed]:
-        truth_labels(root, s)
-    log(f"data ready under {root} ({time.perf_counter() - t_all:.0f} s)")
-    if args.prepare_only:
-        return
-
-    from labelsynth.classes import ClassMap
-
-    classes = ClassMap.of_capture(root / "captures" / f"seed{args.test_seeds[0]}" / "capture")
-    label_quality = summary(pool([score_masks(root / "expanded" / f"seed{s}" / "masks",
-                                              root / "captures" / f"seed{s}" / "truth", classes)
-                                  for s in args.train_seeds])) if expanded else None
-    results: dict[str, dict] = {}
-    for arm in args.arms:
-        report = run_arm(arm, root, args)
-        test, seg_s, seg_frames = segment_and_score(arm, root, args.test_seeds, classes, args, "test")
-        fit, _, _ = segment_and_score(arm, root, args.train_seeds[:1], classes, args, "fit")
-        last = report["history"][-1].get("val_dice") or {}
-        val_t = [last[t] for t in TISSUES if last.get(t) is not None]
-        results[arm] = {"sources": report["sources"], "train_frames": report["split"]["train_frames"],
-                        "train_s": report["times"]["train_s"], "steps": report["step"],
-                        "segment_s": seg_s, "segment_frames": seg_frames, "test": test, "fit": fit,
-                        "val_tissue_mean": float(np.mean(val_t)) if val_t else None,
-                        "history": report["history"]}
-        log(f"arm {arm}: test wound bed Dice {fmt(test['classes']['wound_bed']['dice'])}, tissue mean "
-            f"{fmt(test['tissue_mean_dice'])}" + (f"; segment {seg_frames / seg_s:.1f} frames/s" if seg_s else ""))
+    arms = [a for a in args.arms.split(",") if a]
+    rows: list[dict] = []
+    for arm in arms:
+        cache = args.out / "arms" / f"{arm}.json"
+        if args.table:
+            if cache.is_file():
+                rows.extend(json.loads(cache.read_text()))
+            continue
+        rows.extend(bench.run_arm(arm))
+    if not rows:
+        raise SystemExit("no arm is done yet")
+    by = {_label(r): r for r in rows}
+    present = {kind: bench.val_tissues(kind) for kind in {r["kind"] for r in rows}}
+    for r in rows:
+        r["curve"] = curve(args.out, r, present[r["kind"]])
+    confidence = {}
+    for kind, k in sorted({(r["kind"], r["k"]) for r in rows if "k" in r and r["arm"].lstrip("p")[0] in "bcfe"}):
+        confidence[f"{kind}-K{k}"] = bench.confidence_stats(kind, k)
     wall = time.perf_counter() - t_all
-    (root / f"results-{''.join(args.arms)}.json").write_text(json.dumps({"args": {k: (str(v) if isinstance(v, Path) else v)
-                                                            for k, v in vars(args).items()},
-                                                   "label_quality": label_quality, "arms": results,
-                                                   "wall_s": wall}, indent=2))
-    print_table(results, label_quality)
-    print(f"\nwall {wall:.0f} s (this run; cached steps skipped), load {os.getloadavg()[0]:.2f}; "
-          f"results in {root / ('results-' + ''.join(args.arms) + '.json')}")
+
+    print(f"\n{scale(args)}")
+    print("\nHeld-out test captures: Dice (recall for the wound bed), mean over the frames whose truth holds the class; "
+          "'labels vs truth' = the arm's training labels against the exact truth of the same frames:\n")
+    table = print_table(rows)
+    print()
+    for line in targets(by):
+        print(line)
+    if confidence:
+        print("\nConfidence of the expanded labels (train captures, every pixel):")
+        for key, c in confidence.items():
+            print(f"  {key}: pixel accuracy {c['pixel_accuracy']:.3f}; mean confidence right {c['mean_conf_right']:.3f}, "
+                  f"wrong {c['mean_conf_wrong']:.3f}; >= {c['floor']:g}: keeps {c['kept']:.1%} of pixels at accuracy "
+                  f"{c['accuracy_kept']:.3f}, removes {c['wrong_removed']:.1%} of the wrong ones")
+    for r in rows:
+        if r["arm"] in ("d", "pd"):
+            points = ", ".join(f"{c['step']}: {fmt(c['val_tissue_mean'])}" for c in r["curve"])
+            print(f"\nceiling ({r['arm']}) validation Dice (mean of {', '.join(present[r['kind']])}) by step: {points}")
+    for r in rows:
+        if r["arm"].startswith("st-") and r["labels"].get("predictions"):
+            p = r["labels"]["predictions"]
+            print(f"{_label(r)}: the masks it was made from vs truth: wound bed {fmt(p['classes']['wound_bed']['dice'])}, "
+                  f"tissue mean {fmt(p['tissue_mean_dice'])}")
+    plot_curves(rows, args.out / "curves.png")
+    results = {"args": {k: (str(v) if isinstance(v, Path) else v) for k, v in vars(args).items() if k != "retrain_arm"},
+               "rows": rows, "targets": targets(by), "confidence": confidence, "table": table, "wall_s": wall,
+               "load": os.getloadavg()}
+    (args.out / "results.json").write_text(json.dumps(results, indent=2))
+    print(f"\nwall {wall:.0f} s (this run; cached parts skipped), load average {os.getloadavg()[0]:.1f}; "
+          f"{args.out / 'results.json'}, {args.out / 'curves.png'}")
 
 
 if __name__ == "__main__":

@@ -63,17 +63,33 @@ def synth(
         "(a wound wrapped around a limb, filmed in one turn around it) | all-around-uneven (the same turn, dwelling on one "
         "side of the limb for 3/4 of the frames and passing the other side quickly).",
     ),
+    phone: bool = typer.Option(False, "--phone", help="Phone-video frames: every option below on at a realistic value "
+                               "(exposure 0.5, white balance 0.05, defocus 2, motion blur 8, noise 2, JPEG 80, "
+                               "distance 0.3, zoom 0.25); any of them given explicitly wins."),
+    exposure_drift: Optional[float] = typer.Option(None, "--exposure-drift", help="Auto exposure drifting along the path within +-this many stops (EV)."),
+    white_balance_drift: Optional[float] = typer.Option(None, "--white-balance-drift", help="Red/blue gains drifting within 1 +- this."),
+    defocus_blur: Optional[float] = typer.Option(None, "--defocus-blur", help="Largest defocus radius, pixels at 640 wide (each frame: 0..this)."),
+    motion_blur: Optional[float] = typer.Option(None, "--motion-blur", help="Longest motion-blur streak, pixels at 640 wide (each frame: 0..this)."),
+    sensor_noise: Optional[float] = typer.Option(None, "--sensor-noise", help="Sensor noise sigma in grey levels (grows with exposure gain)."),
+    jpeg_quality: Optional[int] = typer.Option(None, "--jpeg-quality", help="Write images/ as JPEG at this quality (1..100; 0 = PNG)."),
+    distance_change: Optional[float] = typer.Option(None, "--distance-change", help="Camera distance factor along the path: 1/(1+x)..1+x."),
+    zoom: Optional[float] = typer.Option(None, "--zoom", help="Focal length factor along the path: 1/(1+x)..1+x (per-frame intrinsics)."),
     force: bool = typer.Option(False, help="Replace OUT if it exists."),
 ) -> None:
-    """Make a synthetic wound capture with exact truth for every frame."""
-    from .evaluation.synth import SynthConfig, synthesize
+    """Make a synthetic wound capture with exact truth for every frame (optionally phone-like frames)."""
+    from .evaluation.synth import PHONE, SynthConfig, synthesize
 
+    given = {"exposure_drift": exposure_drift, "white_balance_drift": white_balance_drift, "defocus_blur": defocus_blur,
+             "motion_blur": motion_blur, "sensor_noise": sensor_noise, "jpeg_quality": jpeg_quality,
+             "distance_change": distance_change, "zoom": zoom}
+    varied = {**(PHONE if phone else {}), **{k: v for k, v in given.items() if v is not None}}
     cfg = SynthConfig(frames=frames, annotated=annotated, width=width, height=height, noise=noise, seed=seed,
-                      layout=layout)
+                      layout=layout, **varied)
     result = synthesize(out, cfg, force=force)
     typer.echo(f"capture: {result.capture_dir}")
     typer.echo(f"truth:   {result.truth_dir}")
-    typer.echo(f"{result.num_frames} frames, {len(result.annotated)} annotated, {result.seconds:.1f} s")
+    typer.echo(f"{result.num_frames} frames, {len(result.annotated)} annotated, {result.seconds:.1f} s"
+               + (f"; phone-like: {', '.join(f'{k}={v:g}' for k, v in cfg.varied.items())}" if cfg.varied else ""))
 
 
 @app.command()
@@ -318,8 +334,13 @@ def train(
     only_annotated: bool = typer.Option(False, "--only-annotated", help="From labels.h5, train on the expert-annotated frames only."),
     val_captures: Optional[str] = typer.Option(
         None, "--val-captures",
-        help="Comma list of sources (name or path) held out for validation (default: the last one with 3+ sources, "
-             "else the last block of frames of each).",
+        help="Comma list of sources (name or path) held out for validation: they draw the curves and are not trained on.",
+    ),
+    val_split: str = typer.Option(
+        "none", "--val-split",
+        help="Without --val-captures: none (train on every frame given, no validation curve) | capture (hold out the "
+             "last source) | frames (the last block of each source's frames) | auto (capture with 3+ sources, else "
+             "frames). Held-out frames are not trained on; the log says how many.",
     ),
     eval_every: Optional[int] = typer.Option(None, "--eval-every", min=1, help="Validate and checkpoint every N steps (default: steps/10)."),
     resume: bool = typer.Option(False, "--resume", help="Continue from OUT/checkpoint.pt up to --steps."),
@@ -335,10 +356,54 @@ def train(
         arch=arch, encoder=encoder, input_size=input_size, steps=steps, batch_size=batch_size, crop=crop, lr=lr,
         min_confidence=min_confidence, confidence_weight=confidence_weight, expert_weight=expert_weight,
         class_weights=class_weights, dice_weight=dice_weight, only_annotated=only_annotated,
-        val_captures=[v for v in (val_captures or "").split(",") if v], eval_every=eval_every,
+        val_captures=[v for v in (val_captures or "").split(",") if v], val_split=val_split, eval_every=eval_every,
         device=device, seed=seed, workers=workers,
     )
     result = run_train(sources, out, cfg, force=force, resume=resume)
+    typer.echo(result.summary())
+
+
+@app.command()
+@friendly_errors
+def selftrain(
+    captures: list[Path] = typer.Argument(..., metavar="CAPTURE", help="Captures to label: every frame is segmented each round."),
+    model: Path = typer.Option(..., "--model", help="The round-0 segmenter (ONNX, e.g. train's MODEL_DIR/model.onnx)."),
+    out: Path = typer.Option(..., "--out", help="Folder for every round's masks, expansions and models, and selftrain.json."),
+    rounds: int = typer.Option(2, min=1, help="Rounds of segment -> expand -> train."),
+    labels: str = typer.Option("predictions", help="predictions (the masks fused by expand) | both (with each capture's "
+                               "expert frames) | raw (the masks as they are, not fused: the baseline)."),
+    holdout: list[Path] = typer.Option([], "--holdout", help="A capture whose annotations/ score every round (and validate "
+                                       "training); never trained on. Repeatable."),
+    also: list[Path] = typer.Option([], "--also", help="A source added to every round's training (labels.h5 or a capture "
+                                    "folder, e.g. the expert frames of round 0). Repeatable."),
+    recipe: str = typer.Option("default", help="expand's recipe (name or YAML path)."),
+    set_: list[str] = typer.Option([], "--set", help="expand's recipe overrides, e.g. --set geometry.iterations=500"),
+    input_size: Optional[str] = typer.Option(None, "--input-size", help="As for train."),
+    steps: int = typer.Option(400, min=1, help="Optimiser steps of every round's training."),
+    batch_size: int = typer.Option(8, "--batch-size", min=1, help="As for train."),
+    crop: int = typer.Option(256, min=16, help="As for train."),
+    lr: float = typer.Option(6e-4, help="As for train."),
+    min_confidence: float = typer.Option(0.0, "--min-confidence", min=0.0, max=1.0, help="As for train."),
+    confidence_weight: bool = typer.Option(True, "--confidence-weight/--no-confidence-weight", help="As for train."),
+    expert_weight: float = typer.Option(1.0, "--expert-weight", min=0.0, help="As for train."),
+    eval_every: Optional[int] = typer.Option(None, "--eval-every", min=1, help="As for train."),
+    device: str = typer.Option("auto", help="auto | cpu | cuda (segment, expand and train)."),
+    seed: int = typer.Option(0, help="Random seed of expand and train."),
+    force: bool = typer.Option(False, help="Start over in OUT (else a rerun with the same settings continues)."),
+) -> None:
+    """The self-training loop: a model's masks of new captures -> expand -> a new model, round after round."""
+    from rich.console import Console
+
+    from .train import TrainConfig
+    from .train.selftrain import SelfTrainConfig, selftrain as run_selftrain
+
+    tcfg = TrainConfig(input_size=input_size, steps=steps, batch_size=batch_size, crop=crop, lr=lr,
+                       min_confidence=min_confidence, confidence_weight=confidence_weight, expert_weight=expert_weight,
+                       eval_every=eval_every, seed=seed)
+    cfg = SelfTrainConfig(rounds=rounds, labels=labels, recipe=recipe, overrides=set_, seed=seed, device=device,
+                          train=tcfg)
+    result = run_selftrain(captures, model, out, cfg, holdout=holdout, also=also, force=force)
+    Console(width=None if sys.stdout.isatty() else 200).print(result.table(), markup=False, highlight=False)
     typer.echo(result.summary())
 
 

@@ -171,13 +171,15 @@ def _unreadable_reason(path: Path) -> str:
     return "OpenCV cannot decode it"
 
 
-def write_image(path: str | Path, rgb: np.ndarray) -> Path:
-    """Write (H,W,3) uint8 RGB (or (H,W) grey) as PNG/JPEG by the suffix; one-line error naming the file."""
+def write_image(path: str | Path, rgb: np.ndarray, *, jpeg_quality: int | None = None) -> Path:
+    """Write (H,W,3) uint8 RGB (or (H,W) grey) as PNG/JPEG by the suffix (JPEG at ``jpeg_quality``,
+    1..100, else OpenCV's 95); one-line error naming the file."""
     path = Path(path)
     img = np.ascontiguousarray(rgb)
     if img.ndim == 3:
         img = cv2.cvtColor(img, cv2.COLOR_RGB2BGR)
-    ok, buf = cv2.imencode(path.suffix or ".png", img)
+    params = [cv2.IMWRITE_JPEG_QUALITY, int(jpeg_quality)] if jpeg_quality and path.suffix.lower() in (".jpg", ".jpeg") else []
+    ok, buf = cv2.imencode(path.suffix or ".png", img, params)
     if not ok:
         raise CaptureError(f"{path}: could not encode image")
     try:

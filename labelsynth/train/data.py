@@ -188,14 +188,24 @@ def _matches(source: Source, key: str) -> bool:
     return key in (source.name, str(source.path)) or (key_path.exists() and key_path.resolve() == source.path.resolve())
 
 
-def split_by_capture(sources: list[Source], val_captures: list[str] | None = None) -> Split:
-    """Validation by capture, never by frame (frames of one video are near-duplicates).
+VAL_SPLITS = ("none", "capture", "frames", "auto")
 
-    ``val_captures`` names the held-out sources (name or path); with none named and 3+
-    sources the last one is held out; otherwise every source keeps its last contiguous
-    block of frames (``HOLDOUT_FRACTION``, at least one frame of any source with two or more)
-    for validation, which the description says.
+
+def split_by_capture(sources: list[Source], val_captures: list[str] | None = None, mode: str = "auto") -> Split:
+    """Which frames train and which validate: by capture, never by frame at random (frames of
+    one video are near-duplicates).
+
+    ``val_captures`` names held-out sources (name or path): they validate, the others train,
+    whatever ``mode`` is. Otherwise ``mode`` says: ``none`` trains on every frame given (no
+    validation curve); ``capture`` holds out the last source; ``frames`` holds out the last
+    contiguous block of each source's frames (``HOLDOUT_FRACTION``, at least one frame of a
+    source with two or more); ``auto`` is ``capture`` with 3+ sources, else ``frames``.
+    Validation never changes the model (it only draws the curves), so a frame held out is a
+    frame not learned from: the description says how many.
     """
+    if mode not in VAL_SPLITS:
+        raise TrainError(f"--val-split {mode!r}: expected one of {', '.join(VAL_SPLITS)}")
+    total = sum(len(s) for s in sources)
     if val_captures:
         held = []
         for key in val_captures:
@@ -203,7 +213,9 @@ def split_by_capture(sources: list[Source], val_captures: list[str] | None = Non
             if not hits:
                 raise TrainError(f"--val-captures {key!r}: not one of the sources ({', '.join(str(s.path) for s in sources)})")
             held.extend(h for h in hits if h not in held)
-    elif len(sources) >= 3:
+    elif mode == "capture" or (mode == "auto" and len(sources) >= 3):
+        if len(sources) < 2:
+            raise TrainError("--val-split capture: needs two or more sources (one to hold out)")
         held = [sources[-1]]
     else:
         held = []
@@ -214,7 +226,13 @@ def split_by_capture(sources: list[Source], val_captures: list[str] | None = Non
         train = [fr for s in train_sources for fr in _frames(s, range(len(s)))]
         val = [fr for s in held for fr in _frames(s, range(len(s)))]
         desc = f"validation on held-out captures: {', '.join(str(s.path) for s in held)} ({len(val)} frames)"
+        if not val_captures:
+            desc += (f"; training on the other {len(train)} of the {total} frames given "
+                     "(--val-split none trains on all of them)")
         return Split(train, val, desc, [str(s.path) for s in held])
+    if mode == "none":
+        return Split([fr for s in sources for fr in _frames(s, range(len(s)))], [],
+                     f"no validation (--val-split none): training on all {total} frames given", [])
     train, val, parts = [], [], []
     for s in sources:
         n = len(s)
@@ -226,10 +244,10 @@ def split_by_capture(sources: list[Source], val_captures: list[str] | None = Non
             block = s.names[-1] if k == 1 else f"{s.names[n - k]}..{s.names[-1]}"
             parts.append(f"{s.path}: {block}")
     if val:
-        desc = ("too few captures to hold one out: validation on the last contiguous block of frames of each "
-                f"({'; '.join(parts)})")
+        desc = (f"validation on the last contiguous block of frames of each source ({'; '.join(parts)}); "
+                f"training on the other {len(train)} of the {total} frames given (--val-split none trains on all of them)")
     else:
-        desc = "no validation: every source has a single frame"
+        desc = f"no validation: every source has a single frame; training on all {total} frames given"
     return Split(train, val, desc, [])
 
 

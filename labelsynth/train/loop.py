@@ -28,7 +28,8 @@ from ..metrics import Counts
 from ..outdir import atomic_file, write_text_atomic
 from ..progress import console, make_progress
 from .contract import INPUT_NAME, OUTPUT_NAME, format_input_size, normalize, parse_input_size
-from .data import FrameDataset, Split, TrainError, load_sources, make_target, parse_class_weights, split_by_capture
+from .data import (VAL_SPLITS, FrameDataset, Split, TrainError, load_sources, make_target, parse_class_weights,
+                   split_by_capture)
 from .loss import confusion_counts, segmentation_loss, upsample
 from .model import build_model, input_multiple, resolve_encoder
 
@@ -56,6 +57,10 @@ class TrainConfig:
     class_weights: str | None = None  # "id:weight,..." (unnamed classes weigh 1)
     only_annotated: bool = False
     val_captures: list[str] = field(default_factory=list)
+    # none | capture | frames | auto, when no val_captures (data.split_by_capture). "none": validation never
+    # changes the model, and holding out one of 3 single-expert-frame captures cost 0.158 wound-bed and
+    # 0.207 tissue-mean test Dice in bench_retrain (a1-split vs a1, docs/training.md)
+    val_split: str = "none"
     eval_every: int | None = None  # None: steps // 10
     device: str = "auto"
     seed: int = 0
@@ -71,6 +76,8 @@ class TrainConfig:
             raise TrainError(f"--min-confidence {self.min_confidence}: must be in 0..1")
         if self.expert_weight < 0:
             raise TrainError(f"--expert-weight {self.expert_weight}: must be >= 0")
+        if self.val_split not in VAL_SPLITS:
+            raise TrainError(f"--val-split {self.val_split!r}: expected one of {', '.join(VAL_SPLITS)}")
         if self.eval_every is not None and self.eval_every < 1:
             raise TrainError(f"--eval-every {self.eval_every}: must be at least 1")
         self.resize_to()
@@ -293,7 +300,7 @@ def train(sources: list[str | Path], out: str | Path, cfg: TrainConfig | None = 
     if state is not None and state["classes"].to_json() != classes.to_json():
         raise TrainError(f"{out / 'checkpoint.pt'}: its class table differs from the sources' ({loaded[0].path})")
     class_weight = parse_class_weights(cfg.class_weights, classes)
-    split = split_by_capture(loaded, cfg.val_captures)
+    split = split_by_capture(loaded, cfg.val_captures, cfg.val_split)
     if not split.train:
         raise TrainError("no training frames are left after the validation split")
     say(split.description)

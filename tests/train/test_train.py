@@ -67,7 +67,7 @@ def test_train_two_sources_writes_everything_and_segment_runs_it(sources, tmp_pa
     before = {p: p.stat().st_mtime_ns for p in sources["cap0"].rglob("*")}
     out = tmp_path / "model"
     result = _invoke(sources["cap0"], sources["h5"], "--out", out, *TINY, "--min-confidence", "0.5",
-                     "--class-weights", "0:0.5", "--expert-weight", "4")
+                     "--class-weights", "0:0.5", "--expert-weight", "4", "--val-split", "auto")
     assert result.exit_code == 0, result.output
     assert "trained 2/2 steps" in result.output
     for name in ("model.onnx", "checkpoint.pt", "train.json", "curves.png"):
@@ -126,6 +126,7 @@ def test_resume_continues_the_step_count(sources, tmp_path):
     assert "resumed at step 2" in result.output
     report = json.loads((out / "train.json").read_text())
     assert report["resumed_from"] == 2 and report["step"] == 4
+    assert report["split"]["train_frames"] == 4 and "training on all 4 frames given" in report["split"]["description"]
     assert [h["step"] for h in report["history"]] == [1, 2, 3, 4]
     assert torch.load(out / "checkpoint.pt", weights_only=True)["step"] == 4
     for option, value in (("--arch", "unet"), ("--encoder", "b1"), ("--input-size", "32x24")):
@@ -304,6 +305,30 @@ def test_split_is_by_capture(sources):
         split_by_capture(loaded, ["nope"])
 
 
+def test_val_split_modes_say_what_they_hold_out(sources):
+    from labelsynth.train.loop import TrainConfig
+
+    loaded, _ = load_sources([sources["cap0"], sources["cap1"], sources["h5"]])  # 2 + 2 + 4 frames
+    none = split_by_capture(loaded, mode="none")
+    assert len(none.train) == 8 and not none.val and "all 8 frames" in none.description
+    cap = split_by_capture(loaded, mode="capture")
+    assert len(cap.train) == 4 and {fr.source for fr in cap.val} == {"expanded"}
+    assert "training on the other 4 of the 8 frames given" in cap.description
+    frames = split_by_capture(loaded, mode="frames")
+    assert [fr.name for fr in frames.val][-1] == loaded[-1].names[-1] and len(frames.train) == 5
+    assert "training on the other 5 of the 8 frames given" in frames.description
+    auto = split_by_capture(loaded, mode="auto")  # 3 sources: a capture held out
+    assert [fr.name for fr in auto.val] == [fr.name for fr in cap.val]
+    named = split_by_capture(loaded, [str(sources["cap0"])], mode="none")  # named captures win over the mode
+    assert named.val_sources == [str(sources["cap0"])]
+    with pytest.raises(TrainError, match="--val-split"):
+        split_by_capture(loaded, mode="half")
+    with pytest.raises(TrainError, match="two or more sources"):
+        split_by_capture(loaded[:1], mode="capture")
+    with pytest.raises(TrainError, match="--val-split"):
+        TrainConfig(val_split="x").check()
+
+
 # --- bad input: one line naming the file -----------------------------------------------------------
 def test_mixed_class_tables_name_the_file(sources, tmp_path):
     other = ClassMap.from_dict({"classes": [{"id": 0, "name": "background"}, {"id": 1, "name": "wound"}]})
@@ -415,7 +440,7 @@ def test_train_on_a_merged_dataset_never_sees_a_padded_pixel(tmp_path, monkeypat
         return loaded
 
     monkeypatch.setattr(data.Frame, "load", recording_load)
-    one_step_of_every_frame = ["--steps", "1", "--batch-size", "5", "--crop", "32", "--device", "cpu"]
+    one_step_of_every_frame = ["--steps", "1", "--batch-size", "5", "--crop", "32", "--device", "cpu", "--val-split", "auto"]
     result = _invoke(dataset, "--out", tmp_path / "model", *one_step_of_every_frame)
     assert result.exit_code == 0, result.output
     assert {name for name, _ in seen} == set(frames)  # 5 frames trained on in one step, 1 validated

@@ -15,13 +15,14 @@ so that a multi-view method has something to fix.
 The parts: ``config`` (``SynthConfig``, ``SynthResult``, the class ids), ``textures``
 (procedural noise, texture sampling, skin marks), ``scene`` (the one-sided scene and its
 rendering), ``around`` (the all-around scene), ``shading`` (background, vignette,
-Blinn-Phong), ``paths`` (camera paths), ``layouts`` (scene + path + lights of a layout, the
+Blinn-Phong), ``paths`` (camera paths, with the distance and zoom changes), ``camera`` (what a
+phone does to the image: exposure and white-balance drift, blur, noise), ``layouts`` (scene + path + lights of a layout, the
 random streams, ``SynthScene``), ``predictions`` (the imitation segmenter's errors) and
 ``writer`` (``synthesize``: the per-frame stages and the files).
 """
 
 from .around import AroundScene
-from .config import LAYOUTS, SynthConfig, SynthResult
+from .config import LAYOUTS, PHONE, SynthConfig, SynthResult
 from .layouts import SynthScene, build_layout
 from .predictions import predict_errors
 from .scene import OneSidedScene
@@ -30,6 +31,7 @@ from .writer import SynthFrame, annotated_indices, render_frame, synthesize
 
 __all__ = [
     "LAYOUTS",
+    "PHONE",
     "AroundScene",
     "OneSidedScene",
     "SynthConfig",

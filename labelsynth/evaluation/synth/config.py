@@ -3,7 +3,7 @@ the synthetic wound (the default class table's)."""
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, fields
 from pathlib import Path
 from typing import Literal
 
@@ -37,6 +37,40 @@ class SynthConfig:
     turn, dwelling on one side of the limb (``paths.turn_progress``); all-around: a wound wrapped
     around a limb, filmed in one turn around it."""
 
+    # --- what a phone does to the frames (all off by default; ``phone()`` turns on a mix) -------
+    # The truth stays exact: labels and depth come from the geometry. The image effects change
+    # images/ only; distance and zoom change the cameras, which transforms.json records.
+    exposure_drift: float = 0.0
+    """Auto exposure drifting along the video: each frame's exposure is a smooth curve of the path
+    position within +-this many stops (EV; 0.5: gains 0.71..1.41); highlights clip."""
+    white_balance_drift: float = 0.0
+    """Auto white balance drifting along the video: red and blue gains move smoothly within
+    1 +- this (0.05: +-5%)."""
+    defocus_blur: float = 0.0
+    """Largest defocus blur (a disk) radius, in pixels of a 640-pixel-wide frame; each frame's is
+    uniform in 0..this."""
+    motion_blur: float = 0.0
+    """Longest motion-blur streak, in pixels of a 640-pixel-wide frame; each frame's is uniform in
+    0..this, in a random direction (a hand-held phone at video shutter speeds)."""
+    sensor_noise: float = 0.0
+    """Sensor noise: Gaussian, this many grey levels (0..255) at unit exposure gain, growing with
+    the square root of the gain (a dark frame brightened brings its noise up)."""
+    jpeg_quality: int = 0
+    """0: images/ are PNG (exact pixels); 1..100: images/ are JPEG at this quality (8x8 block
+    artefacts and chroma subsampling, as a phone's frames)."""
+    distance_change: float = 0.0
+    """The camera's distance to the wound changes along the path, beyond the path's own +-20%
+    wobble: a smooth factor between 1/(1+this) and 1+this (0.3: 0.77..1.3)."""
+    zoom: float = 0.0
+    """The focal length changes along the path (zooming in and out): a smooth factor between
+    1/(1+this) and 1+this; every frame's intrinsics are written to transforms.json."""
+
+    @classmethod
+    def phone(cls, **overrides) -> "SynthConfig":
+        """A realistic phone-video mix of every effect (the CLI's ``--phone``); ``overrides``
+        replace any field, e.g. ``SynthConfig.phone(seed=3, jpeg_quality=0)``."""
+        return cls(**{**PHONE, **overrides})
+
     def __post_init__(self) -> None:
         if self.layout not in LAYOUTS:
             raise LabelsynthError(f"synth: layout must be one of {', '.join(LAYOUTS)}, got {self.layout!r}")
@@ -48,6 +82,26 @@ class SynthConfig:
             raise LabelsynthError(f"synth: image size must be at least 16x16, got {self.width}x{self.height}")
         if not np.isfinite(self.noise) or self.noise < 0:
             raise LabelsynthError(f"synth: noise must be >= 0, got {self.noise}")
+        limits = {"exposure_drift": 3.0, "white_balance_drift": 0.5, "defocus_blur": 40.0, "motion_blur": 80.0,
+                  "sensor_noise": 50.0, "distance_change": 1.0, "zoom": 1.0}
+        for name, top in limits.items():
+            value = getattr(self, name)
+            if not (np.isfinite(value) and 0 <= value <= top):
+                raise LabelsynthError(f"synth: {name.replace('_', '-')} must be in 0..{top:g}, got {value}")
+        if not (isinstance(self.jpeg_quality, (int, np.integer)) and 0 <= self.jpeg_quality <= 100):
+            raise LabelsynthError(f"synth: jpeg-quality must be an integer in 0..100 (0: PNG), got {self.jpeg_quality}")
+
+    @property
+    def varied(self) -> dict[str, float]:
+        """The phone options that are on (name -> value)."""
+        return {f.name: getattr(self, f.name) for f in fields(self) if f.name in PHONE and getattr(self, f.name)}
+
+
+PHONE = {"exposure_drift": 0.5, "white_balance_drift": 0.05, "defocus_blur": 2.0, "motion_blur": 8.0,
+         "sensor_noise": 2.0, "jpeg_quality": 80, "distance_change": 0.3, "zoom": 0.25}
+"""``SynthConfig.phone()``: hand-held video frames of a wound (exposure within +-0.5 EV, white
+balance +-5%, defocus up to 2 px, motion blur up to 8 px at 640 px wide, noise sigma 2, JPEG
+quality 80, distance 0.77..1.3x and focal length 0.8..1.25x along the path)."""
 
 
 @dataclass

@@ -1,13 +1,16 @@
 """Camera paths: a hand-held arc above the wound (one-sided) and one turn around the limb
 (all-around), each with smooth random wobbles in distance, elevation or tilt, and roll.
 
-A path returns its cameras and the summary ``scene.json`` records as ``camera_path``. What a
-path could vary further (zoom, uneven speed along the path) belongs here, as options of the path.
+A path returns its cameras and the summary ``scene.json`` records as ``camera_path``. Phone-like
+changes along the path (``PathChanges``: the distance to the wound and the focal length, the
+``distance_change`` and ``zoom`` options) multiply the path's own distance and focal length frame
+by frame; they come from their own random stream (``layouts``), so a path without them is the
+path it always was. What a path could vary further (uneven speed) belongs here too.
 """
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, NamedTuple
 
 import numpy as np
 
@@ -30,7 +33,42 @@ def smooth_curve(rng: np.random.Generator, t: np.ndarray, freqs: tuple[float, ..
     return out / total
 
 
-def hand_held_path(rng: np.random.Generator, scene: OneSidedScene, cfg: SynthConfig) -> tuple[list[Camera], dict]:
+class PathChanges(NamedTuple):
+    """Per-frame factors on a path's distance to its aim point and on its focal length."""
+
+    distance: np.ndarray  # (N,)
+    focal: np.ndarray  # (N,)
+
+    def info(self) -> dict:
+        """What scene.json's ``camera_path`` adds (nothing when the path is unchanged)."""
+        out = {}
+        if np.ptp(self.distance) > 0:
+            out["distance_factor"] = [float(self.distance.min()), float(self.distance.max())]
+        if np.ptp(self.focal) > 0:
+            out["focal_factor"] = [float(self.focal.min()), float(self.focal.max())]
+        return out
+
+
+def path_changes(rng: np.random.Generator, cfg: SynthConfig) -> PathChanges | None:
+    """The ``distance_change`` and ``zoom`` factors of every frame (None when both are off): smooth
+    curves between 1/(1+x) and 1+x, i.e. x in log space, so moving in and out are alike."""
+    if not (cfg.distance_change or cfg.zoom):
+        return None
+    t = np.linspace(0.0, 1.0, cfg.frames)
+    distance = (1.0 + cfg.distance_change) ** smooth_curve(rng, t, (0.7, 1.5))
+    focal = (1.0 + cfg.zoom) ** smooth_curve(rng, t, (0.6, 1.3))
+    return PathChanges(distance, focal)
+
+
+def _apply(changes: PathChanges | None, dist: np.ndarray, fx: float) -> tuple[np.ndarray, np.ndarray]:
+    """The path's distances and per-frame focal lengths after ``changes``."""
+    if changes is None:
+        return dist, np.full(len(dist), fx)
+    return dist * changes.distance, fx * changes.focal
+
+
+def hand_held_path(rng: np.random.Generator, scene: OneSidedScene, cfg: SynthConfig,
+                   changes: PathChanges | None = None) -> tuple[list[Camera], dict]:
     """A hand-held phone path: an arc above the wound with varying elevation, distance and roll."""
     hfov = np.deg2rad(rng.uniform(55, 65))
     fx = cfg.width / (2 * np.tan(hfov / 2))
@@ -46,6 +84,7 @@ def hand_held_path(rng: np.random.Generator, scene: OneSidedScene, cfg: SynthCon
     el = el_lo + (el_hi - el_lo) * (0.05 + 0.9 * el_curve)
     dist = d0 * (1 + 0.2 * smooth_curve(rng, t, (0.9, 1.9)))
     roll = np.deg2rad(6) * smooth_curve(rng, t, (1.1, 2.7))
+    dist, focal = _apply(changes, dist, fx)
     jit = 0.15 * scene.wound_radius
     tx, ty = jit * smooth_curve(rng, t, (1.3, 2.9)), jit * smooth_curve(rng, t, (1.6, 3.3))
     c0 = scene.center
@@ -57,11 +96,11 @@ def hand_held_path(rng: np.random.Generator, scene: OneSidedScene, cfg: SynthCon
         c2w = look_at(eye, target, up=normal)
         cr, sr = np.cos(roll[i]), np.sin(roll[i])
         c2w[:3, :3] = c2w[:3, :3] @ np.array([[cr, -sr, 0], [sr, cr, 0], [0, 0, 1]])
-        cams.append(Camera(cfg.width, cfg.height, fx, fx, cfg.width / 2, cfg.height / 2, c2w))
+        cams.append(Camera(cfg.width, cfg.height, focal[i], focal[i], cfg.width / 2, cfg.height / 2, c2w))
     info = {"hfov_deg": float(np.rad2deg(hfov)), "typical_distance": float(d0),
             "elevation_deg": [float(np.rad2deg(el.min())), float(np.rad2deg(el.max()))],
             "distance": [float(dist.min()), float(dist.max())], "sweep_deg": float(np.rad2deg(sweep))}
-    return cams, info
+    return cams, {**info, **(changes.info() if changes else {})}
 
 
 UNEVEN_DWELL = 0.75
@@ -85,7 +124,8 @@ def turn_progress(t: np.ndarray, cfg: SynthConfig) -> np.ndarray:
     return np.interp(t, fine, done / done[-1])
 
 
-def orbit_path(rng: np.random.Generator, scene: AroundScene, cfg: SynthConfig) -> tuple[list[Camera], dict]:
+def orbit_path(rng: np.random.Generator, scene: AroundScene, cfg: SynthConfig,
+               changes: PathChanges | None = None) -> tuple[list[Camera], dict]:
     """An all-around path: one turn around the limb's axis (world x), always aimed at the axis
     near the wound, with smooth random wobbles in distance, position along the axis, tilt
     (looking a little along the limb) and roll. The axis runs across the image."""
@@ -106,6 +146,7 @@ def orbit_path(rng: np.random.Generator, scene: AroundScene, cfg: SynthConfig) -
     along = 0.5 * R * smooth_curve(rng, t, (0.7, 1.6))  # aim point along the axis
     tilt = np.deg2rad(rng.uniform(5, 15)) * smooth_curve(rng, t, (0.8, 1.7))
     roll = np.deg2rad(6) * smooth_curve(rng, t, (1.1, 2.7))
+    dist, focal = _apply(changes, dist, fx)
     x_axis = np.array([1.0, 0, 0])
     cams = []
     for i in range(n):
@@ -116,10 +157,10 @@ def orbit_path(rng: np.random.Generator, scene: AroundScene, cfg: SynthConfig) -
         c2w = look_at(eye, target, up=tangent)  # image right = +x (the axis)
         cr, sr = np.cos(roll[i]), np.sin(roll[i])
         c2w[:3, :3] = c2w[:3, :3] @ np.array([[cr, -sr, 0], [sr, cr, 0], [0, 0, 1]])
-        cams.append(Camera(cfg.width, cfg.height, fx, fx, cfg.width / 2, cfg.height / 2, c2w))
+        cams.append(Camera(cfg.width, cfg.height, focal[i], focal[i], cfg.width / 2, cfg.height / 2, c2w))
     info = {"kind": "orbit", "axis": "x", "hfov_deg": float(np.rad2deg(hfov)), "typical_distance": float(d0),
             "distance": [float(dist.min()), float(dist.max())],
             "tilt_deg": [float(np.rad2deg(tilt.min())), float(np.rad2deg(tilt.max()))],
             "along_axis": [float(along.min()), float(along.max())], "sweep_deg": float(np.rad2deg(turn)),
             "start_angle_deg": float(np.rad2deg(theta[0]))}
-    return cams, info
+    return cams, {**info, **(changes.info() if changes else {})}

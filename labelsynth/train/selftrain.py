@@ -1,0 +1,334 @@
+"""``labelsynth selftrain``: the self-training loop, one command.
+
+A model (round 0: e.g. one trained on a few expert frames) segments every frame of new captures;
+``expand`` fuses its masks into one view-consistent labelling per capture (``--labels
+predictions``, or ``both`` with the captures' own expert frames); a new model is trained on
+the fused labels; it makes the next round's masks. Each round's model is scored on held-out
+captures' expert annotations (``holdout``), so the table says whether the loop keeps improving.
+
+OUT/
+  selftrain.json            the settings and every round's held-out scores (rewritten atomically)
+  round<R>/predictions/<C>/ the previous model's masks of capture C (``segment``)
+  round<R>/captures/<C>/    C with those masks as predictions/ (``capture.view``: C itself is never written)
+  round<R>/expanded/<C>/    ``expand`` of that view (labels.h5); ``raw``: round<R>/labels/<C>.h5 instead
+  round<R>/model/           ``train``: model.onnx, train.json, curves.png
+  round<R>/holdout/<H>/     the round's model's masks of held-out capture H, scored against its annotations/
+
+Every step's output is complete or absent (``outdir.building``, ``train``'s atomic files), so a
+rerun with the same settings continues where the last one stopped; other settings need ``force``.
+The one call into ``pipeline.expand`` is ``_expand``.
+"""
+
+from __future__ import annotations
+
+import json
+import shutil
+import time
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Any, Callable
+
+import numpy as np
+
+from ..capture.view import capture_view
+from ..classes import BACKGROUND_ID, WOUND_BED, ClassMap
+from ..errors import LabelsynthError
+from ..outdir import write_text_atomic
+from ..progress import console
+from ..rundir import LABELS_FILE
+from .data import TrainError
+from .loop import TrainConfig
+
+MODES = ("predictions", "both", "raw")
+
+
+class SelfTrainError(TrainError):
+    """A capture, model or option ``selftrain`` cannot use (one line, names it)."""
+
+
+@dataclass
+class SelfTrainConfig:
+    """What the loop does each round (stored in selftrain.json; a rerun must match it)."""
+
+    rounds: int = 2
+    """Rounds of segment -> expand -> train; round R's masks come from round R-1's model."""
+    labels: str = "predictions"
+    """What teaches a round: ``predictions`` (the model's masks, fused by ``expand --labels
+    predictions``), ``both`` (fused with each capture's own expert frames, ``--labels both``) or
+    ``raw`` (the masks themselves, not fused: the baseline the field is measured against)."""
+    recipe: str = "default"
+    """``expand``'s recipe (name or YAML path)."""
+    overrides: list[str] = field(default_factory=list)
+    """``expand``'s ``--set`` overrides."""
+    seed: int = 0
+    """``expand``'s seed (training has its own, in ``train``)."""
+    device: str = "auto"
+    """auto | cpu | cuda, for segment, expand and train."""
+    train: TrainConfig = field(default_factory=TrainConfig)
+    """Every round trains a new model from scratch with these settings."""
+
+    def check(self) -> None:
+        if self.rounds < 1:
+            raise SelfTrainError(f"--rounds {self.rounds}: must be at least 1")
+        if self.labels not in MODES:
+            raise SelfTrainError(f"--labels {self.labels!r}: expected one of {', '.join(MODES)}")
+        self.train.check()
+
+
+@dataclass
+class RoundScore:
+    """One row of the table: a round's model on the held-out captures."""
+
+    round: int
+    model: str
+    train_frames: int | None
+    scores: dict[str, dict[str, float | int | None]]  # class (and wound_bed) -> dice, recall, n
+    mean_dice: float | None  # over the classes other than background (and the wound bed) present
+    seconds: float = 0.0
+
+    def dice(self, key: str) -> float | None:
+        return (self.scores.get(key) or {}).get("dice")
+
+
+@dataclass
+class SelfTrainResult:
+    out: Path
+    rounds: list[RoundScore]
+    seconds: float
+
+    def table(self) -> str:
+        """Markdown: each round's held-out Dice (wound bed, per class, mean of the classes)."""
+        if not self.rounds or not self.rounds[0].scores:
+            return "(no held-out captures: nothing scored)"
+        keys = [k for k in self.rounds[0].scores if k != "background"]
+        head = "| round | model | trained on (frames) | " + " | ".join(k.replace("_", " ") for k in keys) + " | class mean |"
+        lines = [head, "|---" * (len(keys) + 4) + "|"]
+        for r in self.rounds:
+            cells = [_fmt(r.dice(k)) for k in keys]
+            lines.append(f"| {r.round} | {r.model} | {'-' if r.train_frames is None else r.train_frames} | "
+                         + " | ".join(cells) + f" | {_fmt(r.mean_dice)} |")
+        return "\n".join(lines)
+
+    def summary(self) -> str:
+        last = self.rounds[-1]
+        return (f"self-training: {len(self.rounds) - 1} round(s) in {self.seconds:.0f} s -> {last.model}; "
+                f"results in {self.out / 'selftrain.json'}")
+
+
+def _fmt(v: float | None) -> str:
+    return "-" if v is None else f"{v:.3f}"
+
+
+# --- steps ----------------------------------------------------------------------------------------
+def _expand(capture: Path, out: Path, labels: str, cfg: SelfTrainConfig) -> Path:
+    """``expand CAPTURE --out OUT --labels L --recipe R --no-report``: the loop's one call into the
+    pipeline; returns OUT/labels.h5."""
+    from ..options import ExpandOptions
+    from ..pipeline import expand
+
+    options = ExpandOptions(labels=labels, recipe=cfg.recipe, device=cfg.device, seed=cfg.seed,
+                            overrides=list(cfg.overrides), report=False)
+    expand(capture, out, options, force=True, progress=False)
+    return out / LABELS_FILE
+
+
+def raw_labels_h5(capture: Path, path: Path) -> Path:
+    """labels.h5 of a capture's predictions/ as they are (confidence 1, no frame annotated): what
+    ``train`` learns from when the masks are not fused (``labels="raw"``)."""
+    from ..capture import load_capture
+    from ..export import write_labels_h5
+
+    cap = load_capture(capture)
+    missing = [f.name for f in cap.frames if f.prediction_path is None]
+    if missing:
+        raise SelfTrainError(f"{capture / 'predictions'}: no mask for {len(missing)} frame(s) ({', '.join(missing[:3])})")
+    path.parent.mkdir(parents=True, exist_ok=True)
+    write_labels_h5(path, images=cap.load_image, masks=cap.load_prediction, frame_names=cap.names,
+                    classes=cap.classes, annotated=np.zeros(len(cap), dtype=bool), source=capture)
+    return path
+
+
+def score_on_annotations(model: Path, captures: list[Path], out: Path, classes: ClassMap, device: str) -> dict:
+    """The model's masks of every frame of ``captures`` (in OUT/<name>/), scored against their
+    annotations/ (the frames that have one): per class (and wound bed) mean Dice/recall over the
+    frames whose annotation holds the class, and the mean Dice of the classes other than background."""
+    from ..capture import load_capture
+    from ..capture.masks import read_mask
+    from ..metrics import score_frames
+    from .segment import segment_capture
+
+    preds, truths, names = [], [], []
+    for cap_dir, name in zip(captures, unique_names(captures)):
+        masks = out / name
+        if not masks.is_dir():
+            segment_capture(cap_dir, model, masks, device=device, progress=False)
+        cap = load_capture(cap_dir)
+        for i, frame in enumerate(cap.frames):
+            if frame.annotation_path is not None:
+                preds.append(read_mask(masks / f"{frame.name}.png", None, classes))
+                truths.append(cap.load_annotation(i))
+                names.append(f"{name}/{frame.name}")
+    scores = score_frames(preds, truths, classes, names)
+    table = {r["class"]: {"dice": r["dice"], "recall": r["recall"], "n": r["n"]} for r in scores.table()}
+    background = next(c.name for c in classes.classes if c.id == BACKGROUND_ID)
+    tissues = [k for k in table if k not in (WOUND_BED, background) and table[k]["n"]]
+    mean = float(np.mean([table[k]["dice"] for k in tissues])) if tissues else None
+    return {"classes": table, "mean_dice": mean, "frames": len(names)}
+
+
+def unique_names(paths: list[Path]) -> list[str]:
+    """Folder names for ``paths``, made unique with a numeric suffix where two share a name."""
+    seen: dict[str, int] = {}
+    out = []
+    for p in paths:
+        base = Path(p).name or "capture"
+        seen[base] = seen.get(base, 0) + 1
+        out.append(base if seen[base] == 1 else f"{base}-{seen[base]}")
+    return out
+
+
+def _model_done(model_dir: Path, steps: int) -> bool:
+    report = model_dir / "train.json"
+    if not (report.is_file() and (model_dir / "model.onnx").is_file()):
+        return False
+    data = json.loads(report.read_text())
+    return not data.get("interrupted") and data.get("step") == steps
+
+
+def _same_settings(previous: dict | None, settings: dict) -> bool:
+    """Whether OUT's rounds can be continued: the same settings, except the number of rounds
+    (asking for more rounds continues a finished loop; fewer stops at the last one asked)."""
+    if previous is None:
+        return False
+    a, b = json.loads(json.dumps(previous)), json.loads(json.dumps(settings))
+    a["config"].pop("rounds", None)
+    b["config"].pop("rounds", None)
+    return a == b
+
+
+# --- the loop -----------------------------------------------------------------------------------
+def selftrain(captures: list[str | Path], model: str | Path, out: str | Path, cfg: SelfTrainConfig | None = None, *,
+              holdout: list[str | Path] = (), also: list[str | Path] = (), force: bool = False,
+              progress: bool = True, log: Callable[[str], None] | None = None) -> SelfTrainResult:
+    """Run ``cfg.rounds`` rounds of segment -> expand -> train on ``captures``, starting from
+    ``model`` (an ONNX segmenter, e.g. ``train``'s model.onnx), into OUT.
+
+    ``also``: training sources added to every round (labels.h5 files or capture folders, e.g.
+    the expert frames the first model learned from). ``holdout``: captures whose annotations/
+    score every round's model (round 0 included) and are each round's validation; they are
+    never trained on. Returns the rounds' scores; OUT/selftrain.json holds them too.
+    """
+    from ..capture import load_capture
+    from .loop import train
+
+    cfg = cfg or SelfTrainConfig()
+    cfg.check()
+    say = log or (lambda msg: console.print(f"[bold]selftrain[/] {msg}", highlight=False, soft_wrap=True))
+    out, model = Path(out), Path(model)
+    captures = [Path(c) for c in captures]
+    holdout = [Path(h) for h in holdout]
+    also = [Path(a) for a in also]
+    if not captures:
+        raise SelfTrainError("give at least one CAPTURE to label")
+    if not model.is_file():
+        raise SelfTrainError(f"{model}: model file not found")
+    for group, paths in (("CAPTURE", captures), ("--holdout", holdout)):
+        for p in paths:
+            if not p.is_dir():
+                raise SelfTrainError(f"{p}: {group} is not a capture folder")
+    trained = {p.resolve() for p in [*captures, *also]}
+    for h in holdout:
+        if h.resolve() in trained:
+            raise SelfTrainError(f"{h}: a --holdout capture cannot also be trained on")
+    loaded = [load_capture(c) for c in captures]  # a bad capture fails now, before any work
+    classes = loaded[0].classes
+    for c, cap in zip(captures, loaded):
+        if cap.classes.to_json() != classes.to_json():
+            raise SelfTrainError(f"{c}: its class table differs from {captures[0]}'s")
+        if cfg.labels == "both" and not cap.has_annotations:
+            raise SelfTrainError(f"{c / 'annotations'}: --labels both needs expert frames in every capture")
+    for h in holdout:
+        if not load_capture(h).has_annotations:
+            raise SelfTrainError(f"{h / 'annotations'}: a --holdout capture needs annotations to score against")
+
+    settings = {"captures": [str(c) for c in captures], "model": str(model), "holdout": [str(h) for h in holdout],
+                "also": [str(a) for a in also], "config": asdict(cfg)}
+    state_file = out / "selftrain.json"
+    if out.exists() and not force:
+        previous = json.loads(state_file.read_text()).get("settings") if state_file.is_file() else None
+        if not _same_settings(previous, settings):
+            what = "was made with other settings" if previous is not None else "exists and is not a selftrain folder"
+            raise SelfTrainError(f"{out}: {what} (use --force to start over)")
+        say(f"continuing in {out}")
+    elif out.exists():
+        shutil.rmtree(out)
+    out.mkdir(parents=True, exist_ok=True)
+
+    t0 = time.perf_counter()
+    names = unique_names(captures)
+    rows: list[RoundScore] = []
+    state: dict[str, Any] = {"settings": settings, "rounds": []}
+
+    def save() -> None:
+        state["rounds"] = [asdict(r) for r in rows]
+        write_text_atomic(state_file, json.dumps(state, indent=2))
+
+    def score(r: int, model_path: Path, label: str, frames: int | None, started: float) -> None:
+        if holdout:
+            s = score_on_annotations(model_path, holdout, out / f"round{r}" / "holdout", classes, cfg.device)
+            row = RoundScore(r, label, frames, s["classes"], s["mean_dice"], time.perf_counter() - started)
+            bed = row.dice(WOUND_BED)
+            say(f"round {r}: held-out ({s['frames']} annotated frames) wound bed Dice {_fmt(bed)}, "
+                f"class mean {_fmt(row.mean_dice)}")
+        else:
+            row = RoundScore(r, label, frames, {}, None, time.perf_counter() - started)
+        rows.append(row)
+        save()
+
+    score(0, model, str(model), None, t0)
+    current = model
+    for r in range(1, cfg.rounds + 1):
+        started = time.perf_counter()
+        here = out / f"round{r}"
+        sources: list[Path] = []
+        for i, (cap_dir, name) in enumerate(zip(captures, names)):
+            step = f"round {r}/{cfg.rounds}, capture {i + 1}/{len(captures)} ({name})"
+            masks = here / "predictions" / name
+            if not masks.is_dir():
+                say(f"{step}: segment with {current}")
+                from .segment import segment_capture
+
+                segment_capture(cap_dir, current, masks, device=cfg.device, progress=progress)
+            view = here / "captures" / name
+            if not view.is_dir():
+                capture_view(cap_dir, view, predictions=masks, keep_annotations=cfg.labels == "both")
+            if cfg.labels == "raw":
+                h5 = here / "labels" / f"{name}.h5"
+                if not h5.is_file():
+                    say(f"{step}: labels.h5 of the raw masks")
+                    raw_labels_h5(view, h5)  # written as h5.partial, renamed when complete
+            else:
+                expanded = here / "expanded" / name
+                h5 = expanded / LABELS_FILE
+                if not h5.is_file():
+                    say(f"{step}: expand --labels {cfg.labels} --recipe {cfg.recipe}")
+                    t = time.perf_counter()
+                    _expand(view, expanded, cfg.labels, cfg)
+                    say(f"{step}: expanded in {time.perf_counter() - t:.0f} s")
+            sources.append(h5)
+        model_dir = here / "model"
+        tcfg = TrainConfig(**{**asdict(cfg.train), "device": cfg.device})
+        if holdout:
+            tcfg.val_captures = [str(h) for h in holdout]
+        if not _model_done(model_dir, tcfg.steps):
+            say(f"round {r}/{cfg.rounds}: train on {len(sources) + len(also)} sources")
+            result = train([*also, *sources, *holdout], model_dir, tcfg, force=True, progress=progress, log=say)
+            frames = result.train_frames
+        else:
+            frames = json.loads((model_dir / "train.json").read_text())["split"]["train_frames"]
+        current = model_dir / "model.onnx"
+        score(r, current, str(current), frames, started)
+    result = SelfTrainResult(out, rows, time.perf_counter() - t0)
+    state["table"] = result.table()
+    save()
+    return result

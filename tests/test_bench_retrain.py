@@ -1,0 +1,120 @@
+"""benchmarks/bench_retrain.py end to end on tiny captures (a few steps; the numbers mean nothing):
+each arm trains on what it claims (which frames, how many, with which weights), is scored, and
+lands in the table. The self-training loop itself is tested in tests/train/test_selftrain.py."""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+TINY_EXPAND = ["geometry.iterations=20", "semantic.iterations=10", "render.mesh_resolution=32",
+               "geometry.target_samples=1024", "geometry.max_rays=256", "geometry.march_steps=32",
+               "geometry.occupancy_resolution=16", "semantic.rays_per_batch=256", "semantic.max_rays_per_frame=500"]
+FRAMES, W, H = 4, 48, 36
+
+
+@pytest.fixture(scope="module")
+def bench(tmp_path_factory) -> Path:
+    out = tmp_path_factory.mktemp("bench_retrain") / "out"
+    cmd = [sys.executable, str(ROOT / "benchmarks" / "bench_retrain.py"), "--out", str(out),
+           "--arms", "d,a1,b1,c1,f1,a1-split,st-raw", "--train-seeds", "1,2", "--val-seed", "3", "--test-seeds", "4",
+           "--self-seeds", "5,6", "--frames", str(FRAMES), "--width", str(W), "--height", str(H), "--steps", "2",
+           "--batch-size", "2", "--crop", "32", "--input-size", f"{W}x{H}", "--floor", "0.6"]
+    for o in TINY_EXPAND:
+        cmd += ["--set", o]
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(ROOT), os.environ.get("PYTHONPATH", "")])}
+    res = subprocess.run(cmd, env=env, capture_output=True, text=True, timeout=1500)
+    assert res.returncode == 0, res.stdout[-3000:] + res.stderr[-3000:]
+    (out / "stdout.txt").write_text(res.stdout)
+    return out
+
+
+def _rows(out: Path) -> dict[str, dict]:
+    return {r["arm"] + (f" r{r['round']}" if "round" in r else ""): r
+            for r in json.loads((out / "results.json").read_text())["rows"]}
+
+
+def _train(out: Path, arm: str) -> dict:
+    return json.loads((out / "models" / arm / "train.json").read_text())
+
+
+def test_every_arm_is_in_the_table(bench: Path) -> None:
+    rows = _rows(bench)
+    assert set(rows) == {"d", "a1", "b1", "c1", "f1", "a1-split", "st-raw r1"}
+    text = (bench / "stdout.txt").read_text()
+    for arm in rows:
+        assert f"| {arm} |" in text
+    assert "K=1: (b)-(a) tissue mean" in text and "ceiling (d) validation" in text
+    assert f"scale: {FRAMES} frames of {W}x{H} per capture; plain: 2 train" in text and "2 steps, batch 2, crop 32" in text
+    assert (bench / "curves.png").is_file()
+    for r in rows.values():
+        assert r["test"]["classes"]["wound_bed"]["n"] == FRAMES  # every test frame scored
+        seg = r["arm"] + (f"-r{r['round']}" if "round" in r else "")
+        assert len(list((bench / "segment" / seg / "plain-seed4").glob("*.png"))) == FRAMES
+
+
+def test_expert_arms_train_on_the_chosen_frames(bench: Path) -> None:
+    from labelsynth.capture import load_capture, read_mask
+    from labelsynth.evaluation.synth import annotated_indices
+
+    a1 = _train(bench, "a1")
+    views = [bench / "views" / "plain-K1" / f"seed{s}" for s in (1, 2)]
+    assert a1["sources"][:2] == [str(v) for v in views]
+    assert a1["split"]["train_frames"] == 2 and a1["split"]["val_sources"] == [str(bench / "views/plain-all/seed3")]
+    middle = annotated_indices(FRAMES, 1)
+    for seed, v in zip((1, 2), views):
+        cap = load_capture(v)
+        assert [i for i, f in enumerate(cap.frames) if f.annotation_path is not None] == middle
+        truth = bench / "captures" / "plain" / f"seed{seed}" / "truth" / f"{cap.frames[middle[0]].name}.png"
+        np.testing.assert_array_equal(cap.load_annotation(middle[0]), read_mask(truth, None, cap.classes))
+    split = _train(bench, "a1-split")
+    assert split["split"]["train_frames"] == 1 and split["split"]["val_sources"] == [str(views[1])]
+    d = _train(bench, "d")
+    assert d["split"]["train_frames"] == 2 * FRAMES
+
+
+def test_expanded_arms_and_their_weights(bench: Path) -> None:
+    from labelsynth.classes import ClassMap
+    from labelsynth.export.labels_h5 import LabelsReader
+    from labelsynth.train.data import FrameDataset, load_sources, split_by_capture
+
+    runs = {arm: _train(bench, arm) for arm in ("b1", "c1", "f1")}
+    for arm, run in runs.items():
+        assert run["sources"][:2] == [str(bench / "expanded" / "plain-K1" / f"seed{s}" / "labels.h5") for s in (1, 2)]
+        assert run["split"]["train_frames"] == 2 * FRAMES
+    assert [runs[a]["arguments"]["confidence_weight"] for a in ("b1", "c1", "f1")] == [False, True, False]
+    assert [runs[a]["arguments"]["min_confidence"] for a in ("b1", "c1", "f1")] == [0.0, 0.0, 0.6]
+    reader = LabelsReader(Path(runs["b1"]["sources"][0]))
+    assert reader.annotated.sum() == 1  # expanded from one expert frame
+    # what each arm's settings make of the same frame: c weighs by confidence, f drops what is below the floor
+    loaded, classes = load_sources(runs["c1"]["sources"][:1])
+    frames = split_by_capture(loaded, mode="none").train
+    _, _, conf = frames[0].load()
+    for arm in ("b1", "c1", "f1"):
+        args = runs[arm]["arguments"]
+        item = FrameDataset(frames[:1], classes, confidence_weight=args["confidence_weight"],
+                            min_confidence=args["min_confidence"])[0]
+        weight = item["weight"].numpy()
+        labelled = item["target"].numpy() != 255
+        if arm == "c1":
+            np.testing.assert_allclose(weight[labelled], conf.astype(np.float32)[labelled], rtol=1e-3)
+        elif arm == "f1":
+            assert np.all(weight[conf < 0.6] == 0) and np.all(weight[labelled] == 1)
+        else:
+            assert np.all(weight[labelled] == 1)
+    assert ClassMap.of_capture(bench / "views" / "plain-K1" / "seed1").to_json() == classes.to_json()
+
+
+def test_self_training_arm_reads_m0(bench: Path) -> None:
+    state = json.loads((bench / "selftrain" / "raw" / "selftrain.json").read_text())
+    assert state["settings"]["model"] == str(bench / "models" / "a1" / "model.onnx")
+    assert state["settings"]["captures"] == [str(bench / "views" / "plain-K1" / f"seed{s}") for s in (5, 6)]
+    row = _rows(bench)["st-raw r1"]
+    assert row["train_frames"] == 2 * FRAMES and row["labels"]["predictions"]["classes"]["wound_bed"]["n"] > 0

@@ -1,0 +1,183 @@
+"""``labelsynth selftrain`` and ``capture.view`` on tiny captures: each round segments with the
+previous round's model, fuses (or not) what it was asked to, trains on exactly that, scores the
+held-out captures, and never writes into a capture; a rerun continues instead of redoing."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+import torch
+from typer.testing import CliRunner
+
+from labelsynth.capture import load_capture
+from labelsynth.capture.view import capture_view
+from labelsynth.classes import ClassMap
+from labelsynth.cli import app
+from labelsynth.errors import CaptureError
+from labelsynth.export.labels_h5 import LabelsReader
+from labelsynth.train import TrainConfig
+from labelsynth.train import selftrain as st
+from labelsynth.train.selftrain import SelfTrainConfig, SelfTrainError, selftrain
+
+W, H = 48, 36
+TINY_EXPAND = ["geometry.iterations=20", "semantic.iterations=10", "render.mesh_resolution=32",
+               "geometry.target_samples=1024", "geometry.max_rays=256", "geometry.march_steps=32",
+               "geometry.occupancy_resolution=16", "semantic.rays_per_batch=256", "semantic.max_rays_per_frame=500"]
+TINY_TRAIN = dict(steps=2, batch_size=2, crop=32, eval_every=1, device="cpu")
+
+
+class Redness(torch.nn.Module):
+    """A real (if crude) segmenter: granulation where the pixel is much redder than green."""
+
+    def forward(self, pixel_values):
+        red = pixel_values[:, 0] * 0.229 - pixel_values[:, 1] * 0.224 + 0.029  # r - g in 0..1 units
+        logits = torch.zeros(pixel_values.shape[0], 6, *pixel_values.shape[2:])
+        logits[:, 0] = 0.25
+        logits[:, 1] = red
+        return logits
+
+
+def _log(msg: str) -> None:
+    import time
+    print(time.strftime("%H:%M:%S"), msg, flush=True)
+
+
+def _files(folder: Path) -> dict[Path, bytes]:
+    return {p: p.read_bytes() for p in folder.rglob("*") if p.is_file()}
+
+
+@pytest.fixture(scope="module")
+def data(tmp_path_factory) -> dict[str, Path]:
+    from labelsynth.evaluation.synth import SynthConfig, synthesize
+    from labelsynth.train.export_onnx import export_onnx
+
+    root = tmp_path_factory.mktemp("selftrain")
+    out = {}
+    for name, seed, frames, annotated in (("cap", 1, 4, 1), ("cap2", 2, 3, 1), ("held", 3, 3, 3)):
+        out[name] = synthesize(root / name, SynthConfig(frames=frames, annotated=annotated, width=W, height=H,
+                                                        seed=seed), progress=False).capture_dir
+    out["m0"] = export_onnx(Redness(), root / "m0.onnx", ClassMap.default(), (W, H))
+    out["root"] = root
+    return out
+
+
+def _spy_segment(monkeypatch) -> list[tuple[Path, Path]]:
+    from labelsynth.train import segment
+
+    calls: list[tuple[Path, Path]] = []
+    real = segment.segment_capture
+
+    def spy(capture, model, out_dir, **kw):
+        calls.append((Path(capture), Path(model)))
+        return real(capture, model, out_dir, **kw)
+
+    monkeypatch.setattr(segment, "segment_capture", spy)
+    return calls
+
+
+# --- capture.view --------------------------------------------------------------------------------
+def test_capture_view_has_the_frames_and_only_the_masks_given(data, tmp_path):
+    cap = data["cap"]
+    before = _files(cap)
+    truth = cap.parent / "truth"
+    view = capture_view(cap, tmp_path / "v", annotations={"frame_002": truth / "frame_002.png"},
+                        predictions=cap / "predictions")
+    loaded = load_capture(view)
+    assert loaded.names == load_capture(cap).names
+    assert [f.name for f in loaded.frames if f.annotation_path is not None] == ["frame_002"]
+    assert all(f.prediction_path is not None for f in loaded.frames)
+    np.testing.assert_array_equal(loaded.load_annotation(2), cv2.imread(str(truth / "frame_002.png"), cv2.IMREAD_UNCHANGED))
+    plain = load_capture(capture_view(cap, tmp_path / "w"))  # no masks at all
+    assert not plain.has_annotations and not plain.has_predictions
+    kept = load_capture(capture_view(cap, tmp_path / "k", keep_annotations=True))
+    assert kept.has_annotations and not kept.has_predictions
+    assert _files(cap) == before  # the capture is only read
+    with pytest.raises(CaptureError, match="inside"):
+        capture_view(cap, cap / "sub")
+    with pytest.raises(CaptureError, match="not a capture"):
+        capture_view(tmp_path, tmp_path / "x")
+
+
+# --- the loop ------------------------------------------------------------------------------------
+def test_two_rounds_with_both(data, tmp_path, monkeypatch):
+    calls = _spy_segment(monkeypatch)
+    before = _files(data["cap"])
+    out = tmp_path / "st"
+    cfg = SelfTrainConfig(rounds=2, labels="both", recipe="fast", overrides=TINY_EXPAND, device="cpu",
+                          train=TrainConfig(**TINY_TRAIN))
+    result = selftrain([data["cap"]], data["m0"], out, cfg, holdout=[data["held"]], progress=False, log=_log)
+
+    # round 1 segments with M0, round 2 with round 1's model; each round scores the held-out capture
+    by_capture = [(c, m) for c, m in calls if c == data["cap"]]
+    assert by_capture == [(data["cap"], data["m0"]), (data["cap"], out / "round1" / "model" / "model.onnx")]
+    assert [r.round for r in result.rounds] == [0, 1, 2]
+    assert all(r.dice("wound_bed") is not None for r in result.rounds)
+    for r in (1, 2):
+        masks = sorted(p.stem for p in (out / f"round{r}" / "predictions" / "capture").glob("*.png"))
+        assert masks == load_capture(data["cap"]).names  # every frame segmented
+        reader = LabelsReader(out / f"round{r}" / "expanded" / "capture" / "labels.h5")
+        assert len(reader) == 4 and reader.annotated.tolist() == [False, False, True, False]  # 'both': the expert frame
+        run = json.loads((out / f"round{r}" / "expanded" / "capture" / "run.json").read_text())
+        assert run["labels"] == "both"
+        report = json.loads((out / f"round{r}" / "model" / "train.json").read_text())
+        assert report["sources"] == [str(out / f"round{r}" / "expanded" / "capture" / "labels.h5"), str(data["held"])]
+        assert report["split"]["train_frames"] == 4 and report["split"]["val_sources"] == [str(data["held"])]
+    state = json.loads((out / "selftrain.json").read_text())
+    assert len(state["rounds"]) == 3 and "| 2 |" in state["table"]
+    assert _files(data["cap"]) == before  # predictions went into the loop's own view, not the capture
+
+    # a rerun with the same settings continues: nothing is segmented, expanded or trained again
+    calls.clear()
+    monkeypatch.setattr(st, "_expand", lambda *a, **k: pytest.fail("expanded again"))
+    again = selftrain([data["cap"]], data["m0"], out, cfg, holdout=[data["held"]], progress=False, log=lambda m: None)
+    assert calls == [] and [r.dice("wound_bed") for r in again.rounds] == [r.dice("wound_bed") for r in result.rounds]
+    other = SelfTrainConfig(rounds=2, labels="predictions", recipe="fast", overrides=TINY_EXPAND, device="cpu",
+                            train=TrainConfig(**TINY_TRAIN))
+    with pytest.raises(SelfTrainError, match="other settings"):
+        selftrain([data["cap"]], data["m0"], out, other, holdout=[data["held"]], progress=False, log=lambda m: None)
+
+
+def test_raw_trains_on_the_masks_themselves(data, tmp_path, monkeypatch):
+    monkeypatch.setattr(st, "_expand", lambda *a, **k: pytest.fail("raw must not expand"))
+    out = tmp_path / "raw"
+    cfg = SelfTrainConfig(rounds=1, labels="raw", device="cpu", train=TrainConfig(**TINY_TRAIN, val_split="none"))
+    selftrain([data["cap"], data["cap2"]], data["m0"], out, cfg, progress=False, log=lambda m: None)
+    for name, n in (("capture", 4), ("capture-2", 3)):
+        reader = LabelsReader(out / "round1" / "labels" / f"{name}.h5")
+        assert len(reader) == n and not reader.annotated.any()  # the expert frame did not teach here
+        view = load_capture(out / "round1" / "captures" / name)
+        assert not view.has_annotations
+        for i in range(n):
+            _, mask, conf = reader.read(i)
+            np.testing.assert_array_equal(mask, view.load_prediction(i))
+            assert np.all(conf == 1)
+    report = json.loads((out / "round1" / "model" / "train.json").read_text())
+    assert report["split"]["train_frames"] == 7 and report["split"]["val_frames"] == 0
+
+
+def test_bad_input_is_one_line(data, tmp_path):
+    runner = CliRunner()
+    base = ["selftrain", str(data["cap"]), "--model", str(data["m0"]), "--out", str(tmp_path / "o")]
+    cases = [
+        (["--holdout", str(data["cap"])], "cannot also be trained on"),
+        (["--labels", "guess"], "--labels"),
+        (["--model", str(tmp_path / "none.onnx")], "model file not found"),
+        (["--holdout", str(tmp_path)], "no camera poses"),
+    ]
+    for extra, needle in cases:
+        res = runner.invoke(app, [*base, *extra])
+        assert res.exit_code == 2, res.output
+        errors = [ln for ln in res.output.splitlines() if ln.startswith("labelsynth: error:")]
+        assert len(errors) == 1 and needle in errors[0], res.output
+    no_expert = load_capture(capture_view(data["cap"], tmp_path / "bare"))
+    assert not no_expert.has_annotations
+    res = runner.invoke(app, ["selftrain", str(tmp_path / "bare"), "--model", str(data["m0"]), "--out",
+                              str(tmp_path / "o2"), "--labels", "both"])
+    assert res.exit_code == 2 and "needs expert frames" in res.output
+    res = runner.invoke(app, ["selftrain", str(data["cap"]), "--model", str(data["m0"]), "--out", str(tmp_path / "o3"),
+                              "--holdout", str(tmp_path / "bare")])
+    assert res.exit_code == 2 and "needs annotations" in res.output
