@@ -26,7 +26,7 @@ from .export import LabelsWriter, write_masks_png
 from .geometry.sdf import SDFField
 from .geometry.training import RayBank, train_geometry
 from .options import DeviceChoice, ExpandOptions, LabelMode, MeshFormat, positive_number
-from .outdir import building, check_out
+from .outdir import PARTIAL_SUFFIX, building, check_out, check_writable
 from .progress import console, track
 from .recipe import Recipe
 from .render.field import FittedField
@@ -362,9 +362,13 @@ def rebuild_report(
     # leave-one-out refits, and that the capture's classes are still the field's.
     check_capture(capture, labels="both", class_tables={str(run.field_path): fitted.classes}).raise_if_problems()
     run.check_fits(fitted, capture)
-    masks = run.read_masks(capture.names)
-    return _report(run, capture, FieldRenderer(fitted), masks, LabelMode.parse(info.labels, "labels"), baked=None,
-                   seed=info.seed, progress=progress, mesh_format=mesh_format, mm_per_unit=mm_per_unit, loo=loo)
+    masks = run.read_masks(capture.names, capture)
+    # report.json, report.html and the mesh are written beside OUT and moved in together at the
+    # end: an interrupted or failed rebuild leaves OUT's earlier report as it was
+    with building(run.path, merge=True) as partial:
+        return _report(RunFolder(partial), capture, FieldRenderer(fitted), masks, LabelMode.parse(info.labels, "labels"),
+                       baked=None, seed=info.seed, progress=progress, mesh_format=mesh_format,
+                       mm_per_unit=mm_per_unit, loo=loo)
 
 
 def score_against_truth(out: str | Path, truth_dir: str | Path, classes, exclude: set[str] = frozenset()):
@@ -388,6 +392,24 @@ def score_against_truth(out: str | Path, truth_dir: str | Path, classes, exclude
     return score_frames(preds, truths, classes, names)
 
 
+DEMO_PARTS = ("synthetic", "expanded")
+
+
+def check_demo_out(out: Path) -> None:
+    """The demo's OUT is new, empty or an earlier demo's (only synthetic/ and expanded/, which it
+    replaces): never a folder of the user's own, a capture above all."""
+    check_writable(out)
+    if not out.exists():
+        return
+    if not out.is_dir():
+        raise LabelsynthError(f"{out}: exists and is not a folder")
+    own = {*DEMO_PARTS, *(f"{p}{PARTIAL_SUFFIX}" for p in DEMO_PARTS)}
+    other = sorted(p.name for p in out.iterdir() if p.name not in own)
+    if other:
+        raise LabelsynthError(f"{out}: not an earlier demo's folder (it holds {', '.join(other[:3])}"
+                              f"{', ...' if len(other) > 3 else ''}); give a new or empty folder")
+
+
 def demo(
     out: str | Path = "labelsynth-demo",
     *,
@@ -404,11 +426,14 @@ def demo(
 
     options = ExpandOptions(labels="annotations", recipe=recipe, device=device, overrides=overrides or [])
     options.check()  # before anything is made
+    config = SynthConfig(frames=frames, annotated=min(4, frames // 3) if isinstance(frames, int) else 0, width=width,
+                         height=height)
     out = Path(out)
+    check_demo_out(out)
     synth_dir = out / "synthetic"
     if synth_dir.exists():
         shutil.rmtree(synth_dir)
-    made = synthesize(synth_dir, SynthConfig(frames=frames, annotated=min(4, frames // 3), width=width, height=height), progress=progress)
+    made = synthesize(synth_dir, config, progress=progress)
     result = expand(made.capture_dir, out / "expanded", options, force=True, progress=progress)
     capture = load_capture(made.capture_dir)
     scores = score_against_truth(result.out, made.truth_dir, capture.classes, exclude=set(result.annotated))

@@ -54,9 +54,12 @@ def list_images(folder: str | Path) -> list[Path]:
     if not folder.is_dir():
         raise CaptureError(f"{folder}: images folder not found")
     paths = sorted(
-        p for p in folder.iterdir()
-        if p.is_file() and not p.name.startswith(".") and p.suffix.lower() in IMAGE_SUFFIXES
+        p for p in folder.iterdir() if not p.name.startswith(".") and p.suffix.lower() in IMAGE_SUFFIXES
     )
+    for p in paths:
+        problem = not_a_file(p)
+        if problem:
+            raise CaptureError(f"{p}: {problem} (expected an image)")
     if not paths:
         raise CaptureError(f"{folder}: no PNG or JPEG images")
     seen: dict[str, Path] = {}
@@ -196,9 +199,25 @@ def composite_alpha(rgba: np.ndarray, white_background: bool) -> np.ndarray:
     return (out + 0.5).astype(np.uint8)
 
 
+def not_a_file(path: Path) -> str | None:
+    """Why an entry that is there cannot be read as a file (a folder, a dangling or looping
+    symbolic link), or None: such an entry is an error, never a file that is merely missing."""
+    if path.is_symlink() and not path.exists():
+        return "a symbolic link that leads nowhere (or to itself)"
+    if path.exists() and not path.is_file():
+        return "a folder, not a file"
+    return None
+
+
 def find_image(base: Path) -> Path | None:
     """``base`` itself if it exists, else ``base`` + a known image extension (Blender's
-    ``file_path`` has none), else None."""
+    ``file_path`` has none), else None. An entry that is there but is no file (a folder, a
+    broken link, an ``images`` that is a file) is a one-line ``CaptureError``."""
+    if base.parent.exists() and not base.parent.is_dir():
+        raise CaptureError(f"{base.parent}: not a folder (the capture's images are read from it)")
+    problem = not_a_file(base)
+    if problem:
+        raise CaptureError(f"{base}: {problem} (expected an image)")
     if base.is_file():
         return base
     for ext in IMAGE_EXTENSIONS:
