@@ -127,8 +127,12 @@ def friendly_errors(func):
             _fail(os_error_line(exc))
         except KeyboardInterrupt as exc:  # Ctrl-C, or outdir.Interrupted for SIGTERM
             signame = exc.signal_name if isinstance(exc, Interrupted) else "SIGINT"
-            typer.echo(f"{PROG}: interrupted ({signame})", err=True)
-            raise typer.Exit(code=exc.exit_code if isinstance(exc, Interrupted) else 130)
+            code = exc.exit_code if isinstance(exc, Interrupted) else 130
+            try:
+                typer.echo(f"{PROG}: interrupted ({signame})", err=True)
+            except KeyboardInterrupt:  # another Ctrl-C: the cleanup is done, leave now
+                os._exit(code)
+            raise typer.Exit(code=code)
 
     return wrapper
 

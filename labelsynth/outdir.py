@@ -221,8 +221,9 @@ def building(out: str | Path, *, force: bool = False, merge: bool = False) -> It
                 if out.exists():
                     shutil.rmtree(out)
                 os.replace(partial, out)
-        except BaseException:
+        except BaseException as exc:
             shutil.rmtree(partial, ignore_errors=True)
+            _name_the_output(exc, partial)
             raise
 
 
@@ -237,9 +238,17 @@ def atomic_file(path: str | Path) -> Iterator[Path]:
         try:
             yield tmp
             os.replace(tmp, path)
-        except BaseException:
+        except BaseException as exc:
             tmp.unlink(missing_ok=True)
+            _name_the_output(exc, tmp)
             raise
+
+
+def _name_the_output(exc: BaseException, where: Path) -> None:
+    """A failed write (a full disk, a quota) raises an OSError without a file name: say which
+    output it was, in one line, now that its partial copy is gone."""
+    if isinstance(exc, OSError) and exc.filename is None:
+        raise LabelsynthError(f"{where}: {_os_problem(exc)} while writing it (the partial output was removed)") from None
 
 
 def write_text_atomic(path: str | Path, text: str) -> Path:

@@ -26,7 +26,7 @@ from .export import LabelsWriter, write_masks_png
 from .geometry.sdf import SDFField
 from .geometry.training import RayBank, train_geometry
 from .options import DeviceChoice, ExpandOptions, LabelMode, MeshFormat, positive_number
-from .outdir import PARTIAL_SUFFIX, building, check_out, check_writable
+from .outdir import PARTIAL_SUFFIX, building, check_out, check_writable, ensure_space
 from .progress import console, track
 from .recipe import Recipe
 from .render.field import FittedField
@@ -247,6 +247,15 @@ def render_outputs(
     return masks
 
 
+def output_bytes(capture: Capture, recipe: Recipe) -> int:
+    """About what an expand writes, to refuse a disk without the room before the training rather
+    than after it: the field's parameters (float32) and, per frame, labels.h5's image, mask and
+    confidence at half their raw size (gzip) plus a tenth of a byte per pixel of mask PNG."""
+    field_bytes = 4 * sum(p.numel() for p in SDFField(recipe.geometry.sdf).parameters())
+    pixels = sum(f.size[0] * f.size[1] for f in capture.frames)
+    return int(field_bytes + pixels * (6 * 0.5 + 0.1))
+
+
 def expand(
     capture_dir: str | Path,
     out: str | Path,
@@ -275,6 +284,7 @@ def expand(
     mode = resolve_label_mode(capture, opts.labels)
     check = check_capture(capture, labels="both" if opts.report else mode.value)
     check.raise_if_problems()
+    ensure_space(out, output_bytes(capture, rec), "the outputs of expand (field.pt, labels.h5, masks/)")
     dev = pick_device(opts.device.value)
     with building(out, force=force) as partial:
         run = RunFolder(partial)

@@ -12,6 +12,7 @@ one line naming the file. The formats themselves live beside their readers
 
 from __future__ import annotations
 
+import io
 import json
 import pickle
 import re
@@ -36,8 +37,11 @@ def first_line(exc: BaseException) -> str:
 def save_described(path: str | Path, key: str, description: dict[str, Any], tensors: dict[str, torch.Tensor]) -> Path:
     """Write ``{key: json(description), "tensors": tensors}`` atomically (``outdir.atomic_file``)."""
     path = Path(path)
+    buffer = io.BytesIO()  # serialised in memory, written by Python: a full disk is an OSError naming
+    torch.save({key: json.dumps(description),  # the file, not torch's "PytorchStreamWriter failed"
+                TENSORS_KEY: {k: v.detach().cpu() for k, v in tensors.items()}}, buffer)
     with atomic_file(path) as tmp:
-        torch.save({key: json.dumps(description), TENSORS_KEY: {k: v.detach().cpu() for k, v in tensors.items()}}, tmp)
+        tmp.write_bytes(buffer.getbuffer())
     return path
 
 

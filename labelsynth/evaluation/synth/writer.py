@@ -8,6 +8,7 @@ be a stage between the two, on the image only, with its own random stream (``lay
 
 from __future__ import annotations
 
+import io
 import json
 import time
 from dataclasses import asdict
@@ -91,6 +92,8 @@ def _write_frame(cap: Path, truth_dir: Path, name: str, frame: SynthFrame, *, an
     write_image(cap / "images" / f"{name}.png", frame.image)
     write_mask(cap / "predictions" / f"{name}.png", frame.prediction)
     write_mask(truth_dir / f"{name}.png", frame.truth)
-    np.save(truth_dir / "depth" / f"{name}.npy", frame.depth)
+    buffer = io.BytesIO()  # written by Python, so that a full disk is an OSError naming the file
+    np.save(buffer, frame.depth)
+    (truth_dir / "depth" / f"{name}.npy").write_bytes(buffer.getbuffer())
     if annotated:
         write_mask(cap / "annotations" / f"{name}.png", frame.truth)
