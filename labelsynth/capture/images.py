@@ -44,7 +44,8 @@ def image_size(path: str | Path) -> tuple[int, int]:
 
 def list_images(folder: str | Path) -> list[Path]:
     """The frames of an images folder, sorted by name: PNG or JPEG (any case of the suffix);
-    hidden files (``._frame.png`` from macOS, ``.DS_Store``) and other files are skipped.
+    hidden files (``._frame.png`` from macOS, ``.DS_Store``), folders and other files are skipped;
+    a broken symbolic link with an image's name is an error.
 
     One rule for every consumer (``segment``, ``poses``, the NeuS loader), so they agree on
     what the frames are. A missing folder, a folder without images, or two images with the
@@ -53,13 +54,11 @@ def list_images(folder: str | Path) -> list[Path]:
     folder = Path(folder)
     if not folder.is_dir():
         raise CaptureError(f"{folder}: images folder not found")
-    paths = sorted(
-        p for p in folder.iterdir() if not p.name.startswith(".") and p.suffix.lower() in IMAGE_SUFFIXES
-    )
-    for p in paths:
-        problem = not_a_file(p)
-        if problem:
-            raise CaptureError(f"{p}: {problem} (expected an image)")
+    named = [p for p in folder.iterdir() if not p.name.startswith(".") and p.suffix.lower() in IMAGE_SUFFIXES]
+    for p in named:  # a broken link is an image the user thinks is there: an error, not a skip
+        if p.is_symlink() and not p.exists():
+            raise CaptureError(f"{p}: {not_a_file(p)} (expected an image)")
+    paths = sorted(p for p in named if p.is_file())
     if not paths:
         raise CaptureError(f"{folder}: no PNG or JPEG images")
     seen: dict[str, Path] = {}

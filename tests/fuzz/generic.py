@@ -18,6 +18,7 @@ from __future__ import annotations
 import os
 from dataclasses import dataclass, field
 
+import torch
 import typer
 
 from labelsynth.cli import app
@@ -160,6 +161,8 @@ def generic_cases() -> list[Case]:
                 "float": ["abc", "", "nan", "inf", "-inf"],
                 "str": [""] + ([] if param.name in spec.free_text else ["%%"]),
             }.get(kind, [""])
+            if param.name == "device" and not torch.cuda.is_available():
+                values.append("cuda")  # asked for, not here: refused before any work
             for value in values:
                 cases.append(Case(f"{cmd}-{name}={value or 'empty'}"[:80], _with(spec.base, param, value), (name,)))
     return cases
