@@ -2,16 +2,63 @@
 
 from __future__ import annotations
 
+import errno
 import functools
+import os
 import sys
+import warnings
 from pathlib import Path
 from typing import Optional
 
 import typer
+from typer.core import TyperGroup
+
+try:  # typer 0.2x vendors click as typer._click; older typers use click itself
+    from typer._click import exceptions as _usage
+except ImportError:  # pragma: no cover - depends on the installed typer
+    from click import exceptions as _usage
 
 from .errors import CheckError, LabelsynthError
+from .outdir import Interrupted
+
+PROG = "labelsynth"
+
+
+def _one_line(text: str) -> str:
+    return " ".join(text.split())
+
+
+class _OneLineUsageErrors(TyperGroup):
+    """click's usage errors (``--seed abc``, a missing ``--out``, an unknown command or option)
+    as ONE line on stderr, ``labelsynth: error: <command>: <what is wrong> (see <command>
+    --help)``, exit code 2: the same shape as every other error, never the usage text or a
+    framed panel. ``labelsynth`` alone still prints the help."""
+
+    def main(self, args=None, prog_name=None, complete_var=None, standalone_mode=True, **extra):
+        if not standalone_mode:
+            return super().main(args, prog_name, complete_var, standalone_mode=False, **extra)
+        try:
+            code = super().main(args, prog_name, complete_var, standalone_mode=False, **extra)
+        except _usage.NoArgsIsHelpError as exc:  # the help is printed (rich prints it as it is made)
+            if exc.format_message().strip():
+                typer.echo(exc.format_message(), err=True)
+            sys.exit(exc.exit_code)
+        except _usage.ClickException as exc:
+            ctx = getattr(exc, "ctx", None)
+            where = ctx.command_path if ctx is not None else (prog_name or PROG)
+            message = _one_line(exc.format_message())
+            if isinstance(exc, _usage.UsageError):
+                message += f" (see '{where} --help')"
+            typer.echo(f"{PROG}: error: {where}: {message}", err=True)
+            sys.exit(exc.exit_code)
+        except typer.Abort:  # Ctrl-C at a prompt, or EOF
+            typer.echo(f"{PROG}: interrupted", err=True)
+            sys.exit(130)
+        sys.exit(code if isinstance(code, int) else 0)
+
 
 app = typer.Typer(
+    cls=_OneLineUsageErrors,
     add_completion=False,
     no_args_is_help=True,
     help="View-consistent segmentation masks for every frame of a capture, from a 3D semantic field.",
@@ -20,30 +67,72 @@ app = typer.Typer(
 
 
 def _fail(message: str) -> None:
-    typer.echo(f"labelsynth: error: {message}", err=True)
+    typer.echo(f"{PROG}: error: {_one_line(message)}", err=True)
     raise typer.Exit(code=2)
+
+
+_OS_PROBLEMS = {
+    errno.ENOSPC: "no space left on the device",
+    errno.EDQUOT: "disk quota exceeded",
+    errno.EACCES: "permission denied",
+    errno.EPERM: "operation not permitted",
+    errno.EROFS: "read-only file system",
+    errno.EFBIG: "file too large for this file system (or the process's file size limit)",
+    errno.EIO: "input/output error",
+    errno.ENAMETOOLONG: "file name too long",
+    errno.ELOOP: "too many levels of symbolic links",
+    errno.EISDIR: "is a folder",
+    errno.ENOTDIR: "a part of the path is not a folder",
+    errno.EEXIST: "exists",
+}
+
+
+def os_error_line(exc: OSError) -> str:
+    """One line for an OSError the library did not turn into a LabelsynthError: the path(s)
+    and the problem (``no space left on the device``, ``permission denied``, ...)."""
+    problem = _OS_PROBLEMS.get(exc.errno) or (exc.strerror or "").lower() or _one_line(str(exc)) or type(exc).__name__
+    paths = [os.fsdecode(p) for p in (exc.filename, exc.filename2) if p is not None]
+    where = " -> ".join(paths) if paths else "writing the output"
+    return f"{where}: {problem}"
+
+
+def _warning_line(message, category, filename, lineno, file=None, line=None) -> None:
+    """A warning as one line on stderr, ``labelsynth: warning: ...`` (not Python's two-line
+    form with the source line that raised it)."""
+    typer.echo(f"{PROG}: warning: {_one_line(str(message))}", err=True)
 
 
 def friendly_errors(func):
     """Turn the library's user-facing errors into one line on stderr and exit code 2
-    (a failed input check: one line per bad file, then one summary line)."""
+    (a failed input check: one line per bad file, then one summary line); an OSError
+    (full disk, no permission, read-only file system) is one line naming the path; Ctrl-C
+    and SIGTERM (``outdir.Interrupted``) exit 130 / 143 after the partial output is removed."""
 
     @functools.wraps(func)
     def wrapper(*args, **kwargs):
         try:
-            return func(*args, **kwargs)
+            with warnings.catch_warnings():
+                warnings.showwarning = _warning_line
+                return func(*args, **kwargs)
         except CheckError as exc:
             lines = exc.problems if len(exc.problems) == 1 else [*exc.problems, exc.summary]
             for line in lines[:-1]:
-                typer.echo(f"labelsynth: error: {line}", err=True)
+                typer.echo(f"{PROG}: error: {_one_line(line)}", err=True)
             _fail(lines[-1])
-        except LabelsynthError as exc:
-            _fail(str(exc).splitlines()[0] if str(exc) else type(exc).__name__)
+        except LabelsynthError as exc:  # a text the user typed may hold a line break: one line all the same
+            _fail(str(exc) or type(exc).__name__)
         except FileNotFoundError as exc:
             _fail(f"{exc.filename or ''}: file not found".lstrip(": "))
-        except KeyboardInterrupt:
-            typer.echo("labelsynth: interrupted", err=True)
-            raise typer.Exit(code=130)
+        except OSError as exc:
+            _fail(os_error_line(exc))
+        except KeyboardInterrupt as exc:  # Ctrl-C, or outdir.Interrupted for SIGTERM
+            signame = exc.signal_name if isinstance(exc, Interrupted) else "SIGINT"
+            code = exc.exit_code if isinstance(exc, Interrupted) else 130
+            try:
+                typer.echo(f"{PROG}: interrupted ({signame})", err=True)
+            except KeyboardInterrupt:  # another Ctrl-C: the cleanup is done, leave now
+                os._exit(code)
+            raise typer.Exit(code=code)
 
     return wrapper
 
@@ -356,7 +445,7 @@ def train(
         arch=arch, encoder=encoder, input_size=input_size, steps=steps, batch_size=batch_size, crop=crop, lr=lr,
         min_confidence=min_confidence, confidence_weight=confidence_weight, expert_weight=expert_weight,
         class_weights=class_weights, dice_weight=dice_weight, only_annotated=only_annotated,
-        val_captures=[v for v in (val_captures or "").split(",") if v], val_split=val_split, eval_every=eval_every,
+        val_captures=[] if val_captures is None else val_captures.split(","), val_split=val_split, eval_every=eval_every,
         device=device, seed=seed, workers=workers,
     )
     result = run_train(sources, out, cfg, force=force, resume=resume)
@@ -461,7 +550,7 @@ def bench(
 
 
 def main() -> None:  # pragma: no cover - console entry point alias
-    app(prog_name="labelsynth")
+    app(prog_name=PROG)
 
 
 if __name__ == "__main__":  # pragma: no cover

@@ -42,6 +42,15 @@ class Range:
             return False
         return True
 
+    def broken_by(self, value: float) -> str:
+        """The bound ``value`` breaks, as text (``>= 1``; a count's far ceiling is named only
+        when it is the one broken)."""
+        if self.high is not None and self.high >= MAX_COUNT and self.low is not None:
+            if math.isfinite(value) and value > self.high:
+                return f"<= {self.high:.0f}"
+            return str(Range(self.low, None, self.low_open))
+        return str(self)
+
     def __str__(self) -> str:
         if self.high is None:
             return f"{'>' if self.low_open else '>='} {self.low:g}"
@@ -51,9 +60,12 @@ class Range:
 
 
 # The ranges most fields need: counts of at least one, values above zero, fractions.
-Count = Annotated[int, Range(1)]
-"""A whole number >= 1 (iterations, samples, sizes)."""
-NonNegativeInt = Annotated[int, Range(0)]
+MAX_COUNT = 10**9
+"""No count, size or number of steps goes beyond this: a larger one is a typo (or an overflow
+of the 64-bit integers torch indexes with), refused when the recipe is read."""
+Count = Annotated[int, Range(1, MAX_COUNT)]
+"""A whole number in 1..10^9 (iterations, samples, sizes)."""
+NonNegativeInt = Annotated[int, Range(0, MAX_COUNT)]
 Positive = Annotated[float, Range(0.0, low_open=True)]
 """A finite float > 0 (learning rates, weights that must act, sharpness)."""
 NonNegative = Annotated[float, Range(0.0)]
@@ -122,7 +134,7 @@ def _value(cls: type, name: str, tp: Any, value: Any, where: str) -> Any:
         raise RecipeError(f"{where}: '{value}' is not one of {', '.join(allowed)}")
     limits = range_of(cls, name)
     if limits is not None and not limits.contains(value):
-        raise RecipeError(f"{where}: {value!r} is not {limits}")
+        raise RecipeError(f"{where}: {_shown(value)} is not {limits.broken_by(value)}")
     return value
 
 

@@ -14,7 +14,7 @@ def pick_device(name: str = "auto") -> torch.device:
     if name == "cuda" and not torch.cuda.is_available():
         raise LabelsynthError("--device cuda was asked for but torch sees no CUDA device")
     if name not in {"cpu", "cuda"}:
-        raise LabelsynthError(f"unknown device '{name}' (use auto, cpu or cuda)")
+        raise LabelsynthError(f"--device must be one of auto, cpu, cuda, not '{name}'")
     return torch.device(name)
 
 

@@ -17,6 +17,8 @@ from dataclasses import dataclass, field
 from enum import Enum
 from typing import Any, TypeVar
 
+import numpy as np
+
 from .capture.select import check_frame_spec
 from .device import pick_device
 from .errors import LabelsynthError
@@ -76,11 +78,67 @@ class MeshFormat(Choice):
     GLB = "glb"
 
 
+SEED_MAX = 2**32 - 1
+"""Seeds are 0..2^32-1: numpy's seeding takes no more (torch's would)."""
+
+
+def whole_number(value: Any, option: str, low: int = 0, high: int | None = None) -> int:
+    """``value`` as an int in ``low..high``; otherwise one line naming ``option`` and the range.
+    Every count, size and seed a command takes goes through it (the CLI's integers included:
+    a number beyond the range is refused before any work, not met as an overflow or an
+    allocation of terabytes)."""
+    if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < low \
+            or (high is not None and value > high):
+        bound = f">= {low}" if high is None else f"in {low}..{high}"
+        raise OptionError(f"{option} must be a whole number {bound}, not {_shown(value)}")
+    return int(value)
+
+
+def _shown(value: Any) -> str:
+    text = repr(value)
+    return text if len(text) <= 24 else f"{text[:12]}... ({len(text)} characters)"
+
+
+def finite_number(value: Any, option: str, low: float | None = None, high: float | None = None, *,
+                  low_open: bool = False, high_open: bool = False) -> float:
+    """``value`` as a finite float within the bounds (open or closed); NaN and infinities never
+    pass. Otherwise one line naming ``option`` and what it must be."""
+    ok = not isinstance(value, bool) and isinstance(value, (int, float, np.integer, np.floating)) and math.isfinite(value)
+    if ok and low is not None:
+        ok = value > low if low_open else value >= low
+    if ok and high is not None:
+        ok = value < high if high_open else value <= high
+    if not ok:
+        parts = []
+        if low is not None:
+            parts.append(f"{'>' if low_open else '>='} {low:g}")
+        if high is not None:
+            parts.append(f"{'<' if high_open else '<='} {high:g}")
+        raise OptionError(f"{option} must be a finite number{' ' + ' and '.join(parts) if parts else ''}, "
+                          f"not {_shown(value)}")
+    return float(value)
+
+
 def positive_number(value: Any, option: str) -> float:
     """``value`` as a finite float > 0; otherwise one line naming ``option``."""
     if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value) or value <= 0:
         raise OptionError(f"{option} must be a finite number > 0, not {value!r}")
     return float(value)
+
+
+def seed_value(value: Any, option: str = "--seed") -> int:
+    """A random seed: a whole number in 0..2^32-1 (``SEED_MAX``)."""
+    return whole_number(value, option, 0, SEED_MAX)
+
+
+def given_text(value: Any, option: str) -> str | None:
+    """An optional text option: None when not given; given, it must say something (an empty
+    ``--id-map ""`` is a mistake, not a default)."""
+    if value is None:
+        return None
+    if not isinstance(value, str) or not value.strip():
+        raise OptionError(f"{option} must not be empty (leave the option out for its default)")
+    return value
 
 
 @dataclass
@@ -96,8 +154,7 @@ class FitOptions:
 
     def __post_init__(self) -> None:
         self.device = DeviceChoice.parse(self.device, "--device")
-        if isinstance(self.seed, bool) or not isinstance(self.seed, int) or self.seed < 0:
-            raise OptionError(f"--seed must be a whole number >= 0, not {self.seed!r}")
+        self.seed = seed_value(self.seed)
         if not isinstance(self.recipe, str) or not self.recipe.strip():
             raise OptionError(f"--recipe must be a recipe name or a YAML file, not {self.recipe!r}")
         if self.overrides is None:

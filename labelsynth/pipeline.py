@@ -27,7 +27,7 @@ from .geometry.fingerprint import GeometryFingerprint, require_unchanged
 from .geometry.sdf import SDFField
 from .geometry.training import RayBank, train_geometry
 from .options import DeviceChoice, ExpandOptions, LabelMode, MeshFormat, positive_number
-from .outdir import PARTIAL_SUFFIX, building, check_out, partial_path, previous_path
+from .outdir import PARTIAL_SUFFIX, building, check_out, check_writable, ensure_space, partial_path, previous_path
 from .progress import console, track
 from .recipe import Recipe
 from .render.field import FittedField
@@ -315,6 +315,15 @@ def unseen_shares(view: FieldRenderer, capture: Capture, labels: LabelMode | str
     return out
 
 
+def output_bytes(capture: Capture, recipe: Recipe) -> int:
+    """About what an expand writes, to refuse a disk without the room before the training rather
+    than after it: the field's parameters (float32) and, per frame, labels.h5's image, mask and
+    confidence at half their raw size (gzip) plus a tenth of a byte per pixel of mask PNG."""
+    field_bytes = 4 * sum(p.numel() for p in SDFField(recipe.geometry.sdf).parameters())
+    pixels = sum(f.size[0] * f.size[1] for f in capture.frames)
+    return int(field_bytes + pixels * (6 * 0.5 + 0.1))
+
+
 def expand(
     capture_dir: str | Path,
     out: str | Path,
@@ -351,6 +360,7 @@ def expand(
     mode = resolve_label_mode(capture, opts.labels)
     check = check_capture(capture, labels="both" if opts.report else mode.value)
     check.raise_if_problems()
+    ensure_space(out, output_bytes(capture, rec), "the outputs of expand (field.pt, labels.h5, masks/)")
     dev = pick_device(opts.device.value)
     reused = None
     if source is not None:
@@ -481,10 +491,13 @@ def rebuild_report(
     # refits, and that the capture's classes are still the field's.
     check_capture(capture, labels="both", class_tables={str(run.field_path): fitted.classes}).raise_if_problems()
     run.check_fits(fitted, capture)
-    masks = run.read_masks(capture.names)
-    return _report(run, capture, FieldRenderer(fitted), masks, LabelMode.parse(info.labels, "labels"), baked=None,
-                   seed=info.seed, progress=progress, mesh_format=mesh_format, mm_per_unit=mm_per_unit, loo=loo,
-                   relabel=info.relabel)
+    masks = run.read_masks(capture.names, capture)
+    # report.json, report.html and the mesh are written beside OUT and moved in together at the
+    # end: an interrupted or failed rebuild leaves OUT's earlier report as it was
+    with building(run.path, merge=True) as partial:
+        return _report(RunFolder(partial), capture, FieldRenderer(fitted), masks, LabelMode.parse(info.labels, "labels"),
+                       baked=None, seed=info.seed, progress=progress, mesh_format=mesh_format,
+                       mm_per_unit=mm_per_unit, loo=loo, relabel=info.relabel)
 
 
 @dataclass
@@ -558,7 +571,7 @@ def relabel(
                           class_tables={str(run.field_path): fitted.classes})
     check.raise_if_problems()
     run.check_fits(fitted, cap, need_head=False)
-    before = run.read_masks(cap.names)
+    before = run.read_masks(cap.names, cap)
     now = label_inputs(cap)
     changes = {"masks_changed": changed_label_inputs(info.label_inputs, now),
                "relabels": int((info.relabel or {}).get("relabels", 0)) + 1}
@@ -606,6 +619,24 @@ def score_against_truth(out: str | Path, truth_dir: str | Path, classes, exclude
     return score_frames(preds, truths, classes, names)
 
 
+DEMO_PARTS = ("synthetic", "expanded")
+
+
+def check_demo_out(out: Path) -> None:
+    """The demo's OUT is new, empty or an earlier demo's (only synthetic/ and expanded/, which it
+    replaces): never a folder of the user's own, a capture above all."""
+    check_writable(out)
+    if not out.exists():
+        return
+    if not out.is_dir():
+        raise LabelsynthError(f"{out}: exists and is not a folder")
+    own = {*DEMO_PARTS, *(f"{p}{PARTIAL_SUFFIX}" for p in DEMO_PARTS)}
+    other = sorted(p.name for p in out.iterdir() if p.name not in own)
+    if other:
+        raise LabelsynthError(f"{out}: not an earlier demo's folder (it holds {', '.join(other[:3])}"
+                              f"{', ...' if len(other) > 3 else ''}); give a new or empty folder")
+
+
 def demo(
     out: str | Path = "labelsynth-demo",
     *,
@@ -622,11 +653,14 @@ def demo(
 
     options = ExpandOptions(labels="annotations", recipe=recipe, device=device, overrides=overrides or [])
     options.check()  # before anything is made
+    config = SynthConfig(frames=frames, annotated=min(4, frames // 3) if isinstance(frames, int) else 0, width=width,
+                         height=height)
     out = Path(out)
+    check_demo_out(out)
     synth_dir = out / "synthetic"
     if synth_dir.exists():
         shutil.rmtree(synth_dir)
-    made = synthesize(synth_dir, SynthConfig(frames=frames, annotated=min(4, frames // 3), width=width, height=height), progress=progress)
+    made = synthesize(synth_dir, config, progress=progress)
     result = expand(made.capture_dir, out / "expanded", options, force=True, progress=progress)
     capture = load_capture(made.capture_dir)
     scores = score_against_truth(result.out, made.truth_dir, capture.classes, exclude=set(result.annotated))

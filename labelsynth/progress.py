@@ -23,7 +23,9 @@ console = Console(stderr=True)
 
 
 def make_progress(enabled: bool = True) -> Progress:
-    """A rich Progress printing to stderr; ``enabled=False`` gives a no-op display."""
+    """A rich Progress printing to stderr when it is a terminal; ``enabled=False``, or stderr
+    redirected to a file or a pipe, gives a no-op display (a log gets the summary lines, not
+    the final frame of every bar, and an error stays the one line on stderr)."""
     return Progress(
         TextColumn("[bold]{task.description}"),
         BarColumn(),
@@ -32,7 +34,7 @@ def make_progress(enabled: bool = True) -> Progress:
         TimeElapsedColumn(),
         TimeRemainingColumn(),
         console=console,
-        disable=not enabled,
+        disable=not enabled or not console.is_terminal,
         transient=False,
     )
 

@@ -67,7 +67,8 @@ def recipe_path(name_or_path: str | Path) -> Path:
     if not path.suffix:
         path = RECIPE_DIR / f"{name_or_path}.yaml"
         if not path.exists():
-            raise RecipeError(f"unknown recipe '{name_or_path}' (available: {', '.join(available_recipes())})")
+            raise RecipeError(f"--recipe '{name_or_path}': unknown recipe (available: {', '.join(available_recipes())}, "
+                              "or a .yaml file)")
     if path.is_dir():
         raise RecipeError(f"{path}: is a folder, not a recipe file (give a recipe name or a .yaml file)")
     if not path.exists():

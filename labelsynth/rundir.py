@@ -24,8 +24,6 @@ import copy
 import hashlib
 import json
 import math
-import pickle
-import re
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -43,9 +41,12 @@ from .errors import LabelsynthError
 from .geometry.fingerprint import GeometryChanged, GeometryFingerprint
 from .geometry.sampling import OccupancyGrid
 from .geometry.sdf import SDFField
-from .outdir import PARTIAL_SUFFIX, atomic_file, partial_path, previous_path, write_text_atomic
+from .outdir import PARTIAL_SUFFIX, partial_path, previous_path, write_text_atomic
 from .recipe import Recipe
 from .render.field import FittedField
+from .safeload import first_line as _first_line
+from .safeload import load_plain, read_described, save_described
+from .safeload import tensors_under as _part
 
 MASKS_DIR = "masks"
 LABELS_FILE = "labels.h5"
@@ -185,9 +186,7 @@ def save_field(fitted: FittedField, path: str | Path) -> Path:
     }
     if fitted.fitted_on is not None:
         meta["fitted_on"] = fitted.fitted_on.to_json()
-    with atomic_file(path) as tmp:
-        torch.save({_META_KEY: json.dumps(meta), "tensors": tensors}, tmp)
-    return path
+    return save_described(path, _META_KEY, meta, tensors)
 
 
 def load_field(path: str | Path, device: torch.device | str = "cpu") -> FittedField:
@@ -195,19 +194,7 @@ def load_field(path: str | Path, device: torch.device | str = "cpu") -> FittedFi
     from before format version 2 is converted. Anything unreadable is one ``RunFolderError`` line."""
     path = Path(path)
     device = torch.device(device)
-    if not path.is_file():
-        raise RunFolderError(f"{path}: not found")
-    try:
-        state = torch.load(path, map_location=device, weights_only=True)
-    except pickle.UnpicklingError as exc:
-        code = re.search(r"GLOBAL (\S+) was not an allowed global", str(exc))
-        if code:  # the pickle names a function or class to call: what a tampered file does
-            raise RunFolderError(f"{path}: refused: it would call Python code ({code.group(1)}) when opened, which "
-                                 f"labelsynth never does (a field.pt from elsewhere or altered could run code); "
-                                 f"{_RECREATE}") from None
-        raise RunFolderError(f"{path}: not a labelsynth field file (not tensors and plain values); {_RECREATE}") from None
-    except Exception as exc:  # truncated zip, not a torch file at all, I/O: torch raises many kinds
-        raise RunFolderError(f"{path}: truncated or not a labelsynth field file ({_first_line(exc)}); {_RECREATE}") from None
+    state = load_plain(path, kind="labelsynth field file", remedy=_RECREATE, error=RunFolderError, map_location=device)
     if isinstance(state, dict) and _META_KEY in state:
         meta, tensors = _read_v2(state, path)
     elif isinstance(state, dict) and {"sdf", "head", "grid", "classes", "normalization", "recipe"} <= set(state):
@@ -218,21 +205,15 @@ def load_field(path: str | Path, device: torch.device | str = "cpu") -> FittedFi
 
 
 def _read_v2(state: dict, path: Path) -> tuple[dict, dict[str, torch.Tensor]]:
-    try:
-        meta = json.loads(state[_META_KEY])
-    except (TypeError, ValueError):
-        meta = None
-    if not isinstance(meta, dict) or meta.get("format") != FIELD_FORMAT:
+    meta, tensors = read_described(state, _META_KEY, path, kind="labelsynth field file", error=RunFolderError)
+    if meta.get("format") != FIELD_FORMAT:
         raise RunFolderError(f"{path}: not a labelsynth field file (its description is not readable)")
     version = meta.get("version")
-    if not isinstance(version, int) or version < 1:
+    if isinstance(version, bool) or not isinstance(version, int) or version < 1:
         raise RunFolderError(f"{path}: not a labelsynth field file (format version {version!r})")
     if version > FIELD_VERSION:
         raise RunFolderError(f"{path}: written by a newer labelsynth (field format {version}; this one reads up to "
                              f"{FIELD_VERSION}): update labelsynth")
-    tensors = state.get("tensors")
-    if not isinstance(tensors, dict) or not all(isinstance(v, torch.Tensor) for v in tensors.values()):
-        raise RunFolderError(f"{path}: not a labelsynth field file (no tensors)")
     return meta, tensors
 
 
@@ -291,21 +272,15 @@ def _build_field(meta: dict, tensors: dict[str, torch.Tensor], path: Path, devic
     except (RuntimeError, KeyError, ValueError) as exc:
         raise RunFolderError(f"{path}: its tensors do not fit the recipe it records ({_first_line(exc)}); "
                              f"{_RECREATE}") from None
+    for name, value in tensors.items():
+        if value.is_floating_point() and not torch.isfinite(value).all():
+            raise RunFolderError(f"{path}: its {name} holds NaN or infinite values; {_RECREATE}")
     sdf.eval()
     for p in sdf.parameters():
         p.requires_grad_(False)  # the geometry of a fitted field is frozen
     if head is not None:
         head.eval()
     return fitted.with_head(head)
-
-
-def _part(tensors: dict[str, torch.Tensor], prefix: str) -> dict[str, torch.Tensor]:
-    return {k[len(prefix) + 1:]: v for k, v in tensors.items() if k.startswith(prefix + ".")}
-
-
-def _first_line(exc: BaseException) -> str:
-    lines = [ln.strip() for ln in str(exc).splitlines() if ln.strip()]
-    return lines[0] if lines else type(exc).__name__
 
 
 # ------------------------------------------------------------------------------------------
@@ -511,11 +486,24 @@ class RunFolder:
                     f"{path}: the {what} of frame {differ[0]} changed since the geometry in {self.field_path} was "
                     f"fitted ({len(differ)} frame(s) differ); relabel reuses that geometry: run expand again")
 
-    def read_masks(self, names: list[str]) -> dict[str, np.ndarray]:
-        """masks/<name>.png of every named frame, as expand wrote them."""
+    def read_masks(self, names: list[str], capture: Capture | None = None) -> dict[str, np.ndarray]:
+        """masks/<name>.png of every named frame, as expand wrote them; with ``capture``, each is
+        checked to have its frame's size and only the capture's class ids (one line naming it)."""
+        from .capture.masks import read_mask
+        from .errors import CaptureError
+
+        frames = {f.name: f for f in capture.frames} if capture is not None else {}
         masks = {}
         for name in names:
             path = self.mask_path(name)
+            if not path.is_file():
+                raise RunFolderError(f"{path}: missing (masks/ of a finished expand has every frame's mask)")
+            if capture is not None:
+                try:
+                    masks[name] = read_mask(path, frames[name].size, capture.classes)
+                except CaptureError as exc:
+                    raise RunFolderError(str(exc).splitlines()[0]) from None
+                continue
             m = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
             if m is None or m.ndim != 2:
                 raise RunFolderError(f"{path}: missing or not a single-channel class-id mask")

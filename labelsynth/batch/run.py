@@ -17,13 +17,15 @@ the OOM killer, a lost node) is a system failure that Ray retries ``retries`` ti
 from __future__ import annotations
 
 import os
+import re
 import time
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 from ..errors import CheckError, LabelsynthError
-from ..options import DeviceChoice, ExpandOptions
+from ..options import DeviceChoice, ExpandOptions, finite_number, whole_number
+from ..outdir import check_apart
 from ..progress import make_progress
 from ..rundir import RunFolder
 from .discover import BatchError, CaptureJob, discover
@@ -34,6 +36,9 @@ from .table import BatchRow, counts, read_quality, write_batch_html, write_batch
 CAPTURES_DIR = "captures"
 THREAD_VARS = ("OMP_NUM_THREADS", "MKL_NUM_THREADS", "OPENBLAS_NUM_THREADS")
 DEFAULT_CPUS = 4  # per capture, capped to the largest node
+MAX_CPUS = 4096
+MAX_GPUS = 1024.0
+MAX_RETRIES = 100
 
 
 @dataclass
@@ -128,6 +133,29 @@ def _connect(address: str | None):
     return ray, True
 
 
+_ADDRESS = re.compile(r"^(ray://)?(\[[0-9A-Fa-f:.]+\]|[A-Za-z0-9_.-]+):\d{1,5}$")
+
+
+def check_address(address: str | None) -> None:
+    """``--address``: auto, local, HOST:PORT or ray://HOST:PORT (what ``ray.init`` takes); any
+    other text is one line now, before discovery and before OUT is touched."""
+    if address is None:
+        return
+    if not isinstance(address, str) or not address.strip():
+        raise BatchError("--address must not be empty (leave it out for RAY_ADDRESS or a local instance)")
+    if address not in ("auto", "local") and not _ADDRESS.match(address.strip()):
+        raise BatchError(f"--address {address!r}: expected HOST:PORT, ray://HOST:PORT, auto or local")
+
+
+def check_out_apart(out: Path, jobs: list) -> None:
+    """OUT is neither a capture of the batch nor inside one: a batch writes nothing into a capture."""
+    for job in jobs:
+        try:
+            check_apart(out, {"the capture": job.path})
+        except LabelsynthError as exc:
+            raise BatchError(str(exc)) from None
+
+
 def _largest_node(ray) -> tuple[float, float]:
     """(CPUs, GPUs) of the largest live node: a task asking for more would wait forever."""
     nodes = [n for n in ray.nodes() if n.get("Alive")]
@@ -192,8 +220,11 @@ def run_batch(
     t_start = time.time()
     options = options if options is not None else ExpandOptions()
     out = Path(out)
-    if retries < 0:
-        raise BatchError(f"--retries must be >= 0, not {retries}")
+    retries = whole_number(retries, "--retries", 0, MAX_RETRIES)
+    if cpus_per_capture is not None:
+        cpus_per_capture = whole_number(cpus_per_capture, "--cpus-per-capture", 1, MAX_CPUS)
+    gpus_per_capture = finite_number(gpus_per_capture, "--gpus-per-capture", 0.0, MAX_GPUS)
+    check_address(address)
     if options.device == DeviceChoice.CUDA and not gpus_per_capture:
         raise BatchError("--device cuda needs --gpus-per-capture: Ray gives a task a GPU only when it reserves one")
     if out.exists() and not out.is_dir():
@@ -203,6 +234,7 @@ def run_batch(
     # the device is the workers' to find
     recipe = options.check(device=False).to_dict()
     jobs = discover(source, out)
+    check_out_apart(out, jobs)
     (out / CAPTURES_DIR).mkdir(parents=True, exist_ok=True)
 
     rows: dict[str, BatchRow] = {}

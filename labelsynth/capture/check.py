@@ -46,6 +46,8 @@ class CheckReport:
     files: int = 0
     seconds: float = 0.0
     cached_masks: int = 0
+    stopped: str = "nothing was trained"
+    """What the summary says did not happen because of the problems."""
 
     @property
     def ok(self) -> bool:
@@ -57,7 +59,7 @@ class CheckReport:
         n = len(self.problems)
         return (
             f"{n} problem{'s' if n != 1 else ''} in {self.root} "
-            f"(checked {self.files} files in {self.seconds:.1f} s); nothing was trained"
+            f"(checked {self.files} files in {self.seconds:.1f} s); {self.stopped}"
         )
 
     def raise_if_problems(self) -> None:
@@ -107,6 +109,31 @@ def check_capture(
             elif mask is not None and cache and capture.cache_mask(path, mask, stamp):
                 report.cached_masks += 1
     report.files = len(tasks)
+    report.seconds = time.perf_counter() - t0
+    return report
+
+
+def check_image_files(paths: Sequence[Path], root: Path, *, white_background: bool = False,
+                      workers: int | None = None) -> CheckReport:
+    """Decode every image a command will read (``segment``, ``poses``, ``import`` of photos)
+    with the reader it uses, before it writes anything; every bad file is one line (a
+    truncated or foreign file, a broken link). Sizes are free: these commands take any."""
+    t0 = time.perf_counter()
+    report = CheckReport(root=Path(root), stopped="nothing was written")
+
+    def check(path: Path) -> str | None:
+        try:
+            _images.read_image(path, None, white_background)
+            return None
+        except CaptureError as exc:
+            return str(exc).splitlines()[0]
+        except Exception as exc:  # noqa: BLE001 - one odd file must not hide the others' problems
+            return f"{path}: cannot read image ({type(exc).__name__}: {exc})"
+
+    n_workers = max(1, min(workers or _cpu_count(), len(paths) or 1))
+    with ThreadPoolExecutor(max_workers=n_workers, thread_name_prefix="labelsynth-check") as pool:
+        report.problems = [p for p in pool.map(check, paths) if p]
+    report.files = len(paths)
     report.seconds = time.perf_counter() - t0
     return report
 
@@ -187,4 +214,4 @@ def _cpu_count() -> int:
     return max(1, min(8, n))
 
 
-__all__ = ["CheckReport", "ExtraMask", "check_capture", "compare_class_tables"]
+__all__ = ["CheckReport", "ExtraMask", "check_capture", "check_image_files", "compare_class_tables"]

@@ -44,7 +44,8 @@ def image_size(path: str | Path) -> tuple[int, int]:
 
 def list_images(folder: str | Path) -> list[Path]:
     """The frames of an images folder, sorted by name: PNG or JPEG (any case of the suffix);
-    hidden files (``._frame.png`` from macOS, ``.DS_Store``) and other files are skipped.
+    hidden files (``._frame.png`` from macOS, ``.DS_Store``), folders and other files are skipped;
+    a broken symbolic link with an image's name is an error.
 
     One rule for every consumer (``segment``, ``poses``, the NeuS loader), so they agree on
     what the frames are. A missing folder, a folder without images, or two images with the
@@ -53,10 +54,11 @@ def list_images(folder: str | Path) -> list[Path]:
     folder = Path(folder)
     if not folder.is_dir():
         raise CaptureError(f"{folder}: images folder not found")
-    paths = sorted(
-        p for p in folder.iterdir()
-        if p.is_file() and not p.name.startswith(".") and p.suffix.lower() in IMAGE_SUFFIXES
-    )
+    named = [p for p in folder.iterdir() if not p.name.startswith(".") and p.suffix.lower() in IMAGE_SUFFIXES]
+    for p in named:  # a broken link is an image the user thinks is there: an error, not a skip
+        if p.is_symlink() and not p.exists():
+            raise CaptureError(f"{p}: {not_a_file(p)} (expected an image)")
+    paths = sorted(p for p in named if p.is_file())
     if not paths:
         raise CaptureError(f"{folder}: no PNG or JPEG images")
     seen: dict[str, Path] = {}
@@ -198,9 +200,25 @@ def composite_alpha(rgba: np.ndarray, white_background: bool) -> np.ndarray:
     return (out + 0.5).astype(np.uint8)
 
 
+def not_a_file(path: Path) -> str | None:
+    """Why an entry that is there cannot be read as a file (a folder, a dangling or looping
+    symbolic link), or None: such an entry is an error, never a file that is merely missing."""
+    if path.is_symlink() and not path.exists():
+        return "a symbolic link that leads nowhere (or to itself)"
+    if path.exists() and not path.is_file():
+        return "a folder, not a file"
+    return None
+
+
 def find_image(base: Path) -> Path | None:
     """``base`` itself if it exists, else ``base`` + a known image extension (Blender's
-    ``file_path`` has none), else None."""
+    ``file_path`` has none), else None. An entry that is there but is no file (a folder, a
+    broken link, an ``images`` that is a file) is a one-line ``CaptureError``."""
+    if base.parent.exists() and not base.parent.is_dir():
+        raise CaptureError(f"{base.parent}: not a folder (the capture's images are read from it)")
+    problem = not_a_file(base)
+    if problem:
+        raise CaptureError(f"{base}: {problem} (expected an image)")
     if base.is_file():
         return base
     for ext in IMAGE_EXTENSIONS:

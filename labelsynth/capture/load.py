@@ -28,7 +28,7 @@ from ..classes import CLASSES_FILE, ClassMap
 from ..errors import CaptureError
 from .archives import ARCHIVE_SUFFIXES, archive_masks
 from .colmap import find_sparse_model, read_colmap
-from .images import image_size
+from .images import image_size, not_a_file
 from .masks import BINARY_OBJECT_ID, MASK_EXTENSIONS, color_table_for, mask_size
 from .model import Capture, Frame
 from .neus import find_neus, read_neus
@@ -237,7 +237,12 @@ def _mask_files(folder: Path, classes: ClassMap) -> dict[str, Path]:
         return {}
     found: dict[str, Path] = {}
     for p in sorted(folder.iterdir()):
-        if p.name.startswith(".") or not p.is_file():
+        if p.name.startswith("."):
+            continue
+        if not p.is_file():
+            problem = not_a_file(p) if p.suffix.lower() in (*MASK_EXTENSIONS, *ARCHIVE_SUFFIXES) else None
+            if problem:
+                raise CaptureError(f"{p}: {problem} (expected a mask)")
             continue
         if p.suffix.lower() in LOSSY_EXTENSIONS:
             raise CaptureError(f"{p}: masks must be PNG (JPEG compression changes class ids at edges)")

@@ -22,8 +22,9 @@ import numpy as np
 
 from ..cameras import w2c_cv_to_c2w_gl
 from ..errors import LabelsynthError
-from ..outdir import write_text_atomic
+from ..outdir import check_writable, write_text_atomic
 from ..progress import console, make_progress
+from .check import check_image_files
 from .images import list_images
 
 EXHAUSTIVE_BELOW = 40  # frames; above this, sequential matching
@@ -116,18 +117,23 @@ def estimate_poses(
     import pycolmap
 
     start = time.perf_counter()
+    if matching not in ("auto", "sequential", "exhaustive"):
+        raise LabelsynthError(f"--matching must be one of auto, sequential, exhaustive, not {matching!r}")
     capture = Path(capture)
     images_dir = capture / "images"
     if not images_dir.is_dir():
         raise LabelsynthError(f"{capture}: no images/ folder")
-    names = [p.name for p in list_images(images_dir)]  # the frames segment and the loaders see
+    paths = list_images(images_dir)  # the frames segment and the loaders see
+    names = [p.name for p in paths]
     if len(names) < 3:
         raise LabelsynthError(f"{images_dir}: SfM needs at least 3 images, found {len(names)}")
     target = _resolve_output(capture, out)
+    if target.is_dir():
+        raise LabelsynthError(f"{target}: is a folder, not a transforms.json to write")
     if target.exists() and not force:
         raise LabelsynthError(f"{target}: exists (use --force to overwrite)")
-    if matching not in ("auto", "sequential", "exhaustive"):
-        raise LabelsynthError(f"poses: matching must be auto, sequential or exhaustive, not {matching!r}")
+    check_writable(target)
+    check_image_files(paths, capture).raise_if_problems()  # COLMAP would skip a broken frame in silence
     mode = matching if matching != "auto" else ("exhaustive" if len(names) < EXHAUSTIVE_BELOW else "sequential")
 
     def say(msg: str) -> None:

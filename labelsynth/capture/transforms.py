@@ -144,9 +144,12 @@ def _matrix(value: Any, where: str) -> np.ndarray:
 
 
 def _number(intr: dict, key: str, where: str) -> float:
+    value = intr[key]
+    if isinstance(value, bool) or not isinstance(value, (int, float)):  # "44" is text, not a focal length
+        raise CaptureError(f"{where}: '{key}' is not a number ({value!r:.40})")
     try:
-        v = float(intr[key])
-    except (TypeError, ValueError) as exc:
+        v = float(value)
+    except (TypeError, ValueError, OverflowError) as exc:
         raise CaptureError(f"{where}: '{key}' is not a number") from exc
     if not math.isfinite(v):
         raise CaptureError(f"{where}: '{key}' is not finite")

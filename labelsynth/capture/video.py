@@ -29,8 +29,9 @@ import numpy as np
 
 from .. import __version__
 from ..errors import CaptureError, LabelsynthError
-from ..outdir import building, write_text_atomic
+from ..outdir import building, check_apart, write_text_atomic
 from ..progress import make_progress
+from .check import check_image_files
 from .framepick import MotionTracker, Pick, pick_spread, resize_to, sharpness, thumbnail
 from .images import IMAGE_SUFFIXES, list_images, read_image, write_image
 from .poses import PoseReport, estimate_poses
@@ -38,6 +39,10 @@ from .poses import PoseReport, estimate_poses
 IMPORT_FILE = "import.json"
 # What the opencv-python-headless wheel's FFmpeg decoded when tried (README, "From a video").
 CODECS_READ = "H.264, HEVC, MPEG-4 Part 2, MJPEG, VP8, VP9, AV1, ProRes, MPEG-2, FFV1"
+
+
+MAX_FRAMES = 100_000
+MAX_SIDE = 16384
 
 
 @dataclass
@@ -237,22 +242,28 @@ def import_capture(source: str | Path, out: str | Path, config: ImportConfig | N
 
 
 def _check_args(source: Path, out: Path, config: ImportConfig) -> None:
+    """Every option, and that the source opens (a video's container and stream, a folder's
+    photos), before OUT.partial exists: one line naming what is wrong."""
+    from ..options import whole_number
+
+    whole_number(config.frames, "--frames", 1, MAX_FRAMES)
+    whole_number(config.max_side, "--max-side", 16, MAX_SIDE)
     if not source.exists():
-        raise CaptureError(f"{source}: not found")
-    if config.frames < 1:
-        raise LabelsynthError(f"--frames must be at least 1, not {config.frames}")
+        kind = "a symbolic link that leads nowhere (or to itself)" if source.is_symlink() else "not found"
+        raise CaptureError(f"{source}: {kind}")
     if config.poses and config.frames < 3:
         raise LabelsynthError(f"--frames {config.frames}: structure-from-motion needs at least 3 frames "
                               "(or use --no-poses)")
-    if config.max_side < 16:
-        raise LabelsynthError(f"--max-side must be at least 16 pixels, not {config.max_side}")
     if source.is_file() and source.suffix.lower() in IMAGE_SUFFIXES:
         raise CaptureError(f"{source}: a single image; give a video or a folder of photos")
     if source.is_dir():
-        src, dst = source.resolve(), out.resolve()
-        if dst == src or src in dst.parents:
-            raise LabelsynthError(f"{out}: inside the photo folder {source}; write the capture elsewhere "
-                                  "(nothing in the source is changed)")
+        check_apart(out, {"the photo folder": source})
+        # every photo decodes (one line per bad one), now rather than after OUT.partial exists
+        check_image_files(list_images(source), source).raise_if_problems()
+    else:
+        with VideoReader(source) as video:  # the container and the video stream open (no frame decoded)
+            if video.frame_count is not None and video.frame_count < config.frames:
+                raise CaptureError(f"{source}: has {video.frame_count} frames, fewer than --frames {config.frames}")
 
 
 def _import_video(source: Path, images: Path, config: ImportConfig, progress: bool) -> ImportReport:

@@ -32,6 +32,7 @@ from ..capture import ExtraMask, check_capture, load_capture
 from ..capture.model import Capture
 from ..device import pick_device
 from ..errors import LabelsynthError
+from ..outdir import building, check_apart, check_writable
 from ..pipeline import fit_geometry, fit_semantics, labelled_frames
 from ..progress import console, track
 from ..render.renderer import FieldRenderer
@@ -59,20 +60,26 @@ ROW_METRICS = ("dice", "recall", "precision", "iou")
 
 
 def parse_list(value: str | Iterable[str] | None, default: Sequence[str]) -> list[str]:
-    """``"a,b"`` or an iterable of names -> list (empty/None -> the default)."""
+    """``"a,b"`` or an iterable of names -> list (None -> the default; an empty name is an error)."""
     if value is None:
         return list(default)
     items = value.split(",") if isinstance(value, str) else [str(v) for v in value]
-    items = [i.strip() for i in items if i.strip()]
-    return items or list(default)
+    items = [i.strip() for i in items]
+    if not items or not all(items):
+        raise LabelsynthError(f"an empty name in {value!r} (leave the option out for all: {', '.join(default)})")
+    return items
 
 
 def normalise_methods(methods: str | Iterable[str] | None) -> list[str]:
     out = []
-    for m in parse_list(methods, METHODS):
+    try:
+        names = parse_list(methods, METHODS)
+    except LabelsynthError as exc:
+        raise LabelsynthError(f"--methods: {exc}") from None
+    for m in names:
         key = _METHOD_ALIASES.get(m.lower())
         if key is None:
-            raise LabelsynthError(f"unknown bench method {m!r}; choose from {', '.join(METHODS)}")
+            raise LabelsynthError(f"--methods: unknown bench method {m!r}; choose from {', '.join(METHODS)}")
         if key not in out:
             out.append(key)
     return [m for m in METHODS if m in out]
@@ -80,11 +87,15 @@ def normalise_methods(methods: str | Iterable[str] | None) -> list[str]:
 
 def normalise_perturbations(perturbations: str | Iterable[str] | None) -> list[str]:
     out = []
-    for p in parse_list(perturbations, PERTURBATIONS):
+    try:
+        names = parse_list(perturbations, PERTURBATIONS)
+    except LabelsynthError as exc:
+        raise LabelsynthError(f"--perturb: {exc}") from None
+    for p in names:
         key = p.lower().replace("_", "-")
         key = {"erosion": "erosion-dilation", "jittering": "jitter", "half": "half-frames"}.get(key, key)
         if key not in PERTURBATIONS:
-            raise LabelsynthError(f"unknown perturbation {p!r}; choose from {', '.join(PERTURBATIONS)}")
+            raise LabelsynthError(f"--perturb: unknown perturbation {p!r}; choose from {', '.join(PERTURBATIONS)}")
         if key not in out:
             out.append(key)
     return [p for p in PERTURBATIONS if p in out]
@@ -178,12 +189,22 @@ def run_bench(
     setting) rather than reuse the all-frames geometry. ``annotated_frames``: which frames'
     annotations teach (``load_capture``); the others are scored. Returns the bench.json content.
     """
+    from ..options import DeviceChoice, finite_number, seed_value, whole_number
+
     t_start = time.perf_counter()
-    capture = load_capture(capture_dir, annotated_frames=annotated_frames)
+    seed = seed_value(seed)
+    cutoff_deg = finite_number(cutoff_deg, "--cutoff", 0.0, 90.0, low_open=True)
+    stride = whole_number(stride, "stride", 1, 4096)
     meths = normalise_methods(methods)
     perts = normalise_perturbations(perturbations)
     rec = load_recipe(recipe, overrides)
-    dev = pick_device(device)
+    dev = pick_device(DeviceChoice.parse(device, "--device").value)
+    capture = load_capture(capture_dir, annotated_frames=annotated_frames)
+    out_dir = Path(out_dir)
+    check_apart(out_dir, {"the capture": capture.root, "the truth folder": Path(truth_dir)})
+    if out_dir.exists() and not out_dir.is_dir():
+        raise LabelsynthError(f"{out_dir}: exists and is not a folder")
+    check_writable(out_dir)
     needs_field = "field" in meths
     needs_geometry = needs_field or ("3d2d" in meths and mesh is None)
     inputs = _load_inputs(capture, truth_dir, meths, mesh, needs_field=needs_field, needs_geometry=needs_geometry)
@@ -325,11 +346,12 @@ def _run_annotation_field(bench: _BenchRows, sem: FieldRenderer, rec: Recipe, *,
 
 
 def _write_bench(result: dict, out_dir: Path) -> None:
-    """bench.json (the numbers), bench.md (the paper's tables) and bench.png (the bars)."""
-    out_dir.mkdir(parents=True, exist_ok=True)
-    (out_dir / "bench.json").write_text(json.dumps(result, indent=2))
-    (out_dir / "bench.md").write_text(bench_markdown(result))
-    bench_plot(result, out_dir / "bench.png")
+    """bench.json (the numbers), bench.md (the paper's tables) and bench.png (the bars), all
+    three moved into OUT together when written (other files in OUT stay)."""
+    with building(out_dir, merge=True) as partial:
+        (partial / "bench.json").write_text(json.dumps(result, indent=2), encoding="utf-8")
+        (partial / "bench.md").write_text(bench_markdown(result), encoding="utf-8")
+        bench_plot(result, partial / "bench.png")
 
 
 def _half_geometry_note(user_mesh: bool, field: bool, refit: bool) -> str:

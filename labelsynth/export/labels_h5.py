@@ -53,7 +53,7 @@ import numpy as np
 from .. import __version__
 from ..classes import IGNORE_ID, ClassInfo, ClassMap
 from ..errors import LabelsynthError
-from ..outdir import atomic_file, partial_path
+from ..outdir import atomic_file, ensure_space, partial_path
 
 # --- the schema ----------------------------------------------------------------------------
 FORMAT = "labelsynth-labels"
@@ -270,6 +270,8 @@ class LabelsWriter:
             if not np.isfinite(conf).all():
                 raise ExportError(f"{what}: confidence has NaN or infinite values")
             conf = np.clip(conf, 0.0, 1.0).astype(np.float16)
+        # HDF5 crashes the process when a write meets a full disk: ask for the room first
+        ensure_space(self.partial_path, image.nbytes + mask.nbytes + conf.nbytes, f"{what} of {self.path.name}")
         i = self.count
         f = self._f
         f["images"][i] = image
@@ -488,6 +490,14 @@ class LabelsReader:
         self.capture_names = [str(s) for s in f[CAPTURE].asstr()[()]] if CAPTURE in f else None
         if self.capture_names is not None and len(self.capture_names) != n:
             raise LabelsReadError(f"{path}: {CAPTURE} names {len(self.capture_names)} frames, the file holds {n}")
+        seen: dict[tuple[str, str], int] = {}
+        for i, name in enumerate(self.frame_names):
+            key = (self.capture_names[i] if self.capture_names is not None else "", name)
+            if not name:
+                raise LabelsReadError(f"{path}: frame {i} has no name")
+            if key in seen:
+                raise LabelsReadError(f"{path}: frame name {name!r} is given twice (frames {seen[key]} and {i})")
+            seen[key] = i
         self.frame_sizes = f[FRAME_SIZES][()].astype(np.int64) if FRAME_SIZES in f else None
         if self.frame_sizes is not None:
             sizes = self.frame_sizes
@@ -529,6 +539,22 @@ class LabelsReader:
             return f["images"][i, :h, :w], f["masks"][i, :h, :w], f["confidence"][i, :h, :w]
         except (OSError, KeyError, ValueError) as exc:
             raise LabelsReadError(f"{self.path}: frame {i} cannot be read ({_first_line(exc)})") from None
+
+    def verify(self) -> None:
+        """Read every frame once and check what ``read`` does not: masks hold only the class
+        table's ids (or 255), confidences are finite and in 0..1. A reader of a hand-edited
+        or foreign file calls it before training on it (one line naming the frame)."""
+        valid = valid_id_table(self.classes)
+        for i in range(len(self)):
+            _, mask, confidence = self.read(i)
+            what = f"{self.path}: frame {i} ({self.frame_names[i]!r})"
+            try:
+                check_mask_ids(np.asarray(mask), valid, what)
+            except ExportError as exc:
+                raise LabelsReadError(str(exc)) from None
+            conf = np.asarray(confidence, dtype=np.float32)
+            if not np.isfinite(conf).all() or conf.min(initial=0.0) < 0 or conf.max(initial=0.0) > 1:
+                raise LabelsReadError(f"{what}: confidence must be finite and in 0..1")
 
     def __getstate__(self) -> dict[str, Any]:  # DataLoader workers open their own handle
         return {**self.__dict__, "_handle": None, "_pid": None}
@@ -598,6 +624,7 @@ def write_merged(target: str | Path, parts: Sequence[tuple[str, LabelsReader]]) 
         merged.append({"name": name, "file": rel, "first": start, "frames": n, "height": h, "width": w})
         start += n
     strings = h5py.string_dtype("utf-8")
+    ensure_space(target, 65536 + 512 * total, target.name)  # no pixels: names, sizes and the virtual layout
     with atomic_file(target) as tmp, h5py.File(tmp, "w") as f:
         for key in MERGED_COPIED_ATTRS:
             if key in first.attrs:

@@ -22,6 +22,7 @@ from ..errors import LabelsynthError
 __all__ = ["augment", "AugmentResult", "AugmentError"]
 
 AUGMENT_DIR = "augment"
+MAX_VIEWS = 100_000
 
 
 class AugmentError(LabelsynthError, ValueError):
@@ -63,6 +64,7 @@ def augment(
     ``force`` replaces an existing OUT/augment. The same seed gives the same poses.
     """
     from ..device import pick_device
+    from ..export.labels_h5 import LabelsReader
     from ..options import DeviceChoice
     from ..outdir import building, check_out
     from ..progress import console, track
@@ -72,8 +74,10 @@ def augment(
     from .views import METHODS, RealFrames, render_view
     from .write import AugmentWriter, world_camera
 
-    if isinstance(views, bool) or not isinstance(views, (int, np.integer)) or views <= 0:
-        raise AugmentError(f"--views must be a whole number of at least 1, got {views}")
+    from ..options import seed_value, whole_number
+
+    views = whole_number(views, "--views", 1, MAX_VIEWS)
+    seed = seed_value(seed)
     if method not in METHODS:
         raise AugmentError(f"--method must be one of {', '.join(METHODS)}, not {method!r}")
     sp = parse_spread(spread)
@@ -82,6 +86,12 @@ def augment(
     _, cap = run.open_capture(capture)
     target = run.path / AUGMENT_DIR
     check_out(target, force)
+    with LabelsReader(run.labels_path) as real:  # the real frames augment.h5 will copy: checked now
+        names = set(cap.names)
+        stray = [n for n in real.frame_names if n not in names]
+        if stray:
+            raise AugmentError(f"{run.labels_path}: frames {stray[:3]} are not in the capture {cap.root} "
+                               "(a different capture?)")
     t0 = time.perf_counter()
     fitted = run.load_field(dev)
     run.check_fits(fitted, cap)

@@ -53,6 +53,8 @@ def parse_spread(text: str | float | Spread | None) -> Spread:
     if isinstance(text, (int, float)):
         return _checked(Spread().scaled(float(text)), str(text))
     s = str(text).strip()
+    if not s:
+        raise LabelsynthError("--spread must not be empty (a number, or key=value pairs such as tilt=25,roll=0)")
     try:
         return _checked(Spread().scaled(float(s)), s)
     except ValueError:

@@ -24,6 +24,7 @@ from ..capture.model import SceneNormalization
 from ..classes import ClassMap
 from ..export import LabelsWriter, write_masks_png
 from ..export.labels_h5 import RESERVED_ATTRS, LabelsReader
+from ..outdir import ensure_space
 
 AUGMENT_H5 = "augment.h5"
 SUMMARY_JSON = "augment.json"
@@ -101,8 +102,9 @@ class AugmentWriter:
                 self._record(name, self.real_cameras[name], np.ones(mask.shape, bool))
         self.writer.close()
         n = len(self.names)
+        h, w = self.writer.height, self.writer.width
+        ensure_space(self.path, n * (h * w + 256), f"the camera and validity datasets of {self.path.name}")
         with h5py.File(self.path, "a") as f:
-            h, w = f["masks"].shape[1:]
             f.create_dataset("novel", data=np.arange(n) < self.n_views)
             f.create_dataset("c2w", data=np.stack([c.c2w for c in self.cameras]))
             f.create_dataset("intrinsics", data=np.array([_intrinsics(c) for c in self.cameras], np.float64))

@@ -35,11 +35,11 @@ IMAGENET_STD = (0.229, 0.224, 0.225)
 
 
 def parse_input_size(text: str | Sequence[int] | None, *, error: type[Exception] = LabelsynthError,
-                     minimum: int = 1) -> tuple[int, int] | None:
+                     minimum: int = 1, maximum: int = 16384) -> tuple[int, int] | None:
     """``"512x384"`` (width x height), ``"512"`` (square) or ``(512, 384)`` -> ``(512, 384)``;
-    None or ``""`` stays None. A malformed size, or a side below ``minimum``, raises ``error``
-    (one line naming ``--input-size``)."""
-    if text is None or text == "":
+    None stays None. A malformed or empty size, or a side outside ``minimum..maximum``, raises
+    ``error`` (one line naming ``--input-size``)."""
+    if text is None:
         return None
     try:
         if isinstance(text, str):
@@ -54,6 +54,8 @@ def parse_input_size(text: str | Sequence[int] | None, *, error: type[Exception]
         raise error(f"--input-size {text!r}: expected WxH, e.g. 320x240")
     if min(values) < minimum:
         raise error(f"--input-size {text!r}: both sides must be at least {minimum} pixel{'s' if minimum > 1 else ''}")
+    if max(values) > maximum:
+        raise error(f"--input-size {text!r}: both sides must be at most {maximum} pixels")
     return values[0], values[1]
 
 

@@ -118,6 +118,7 @@ def load_labels_h5(path: Path, only_annotated: bool = False) -> Source:
 
     try:
         reader = LabelsReader(path)
+        reader.verify()  # every frame's ids and confidences, before the first step
     except LabelsynthError as exc:
         raise TrainError(str(exc)) from None
     keep = np.flatnonzero(reader.annotated) if only_annotated else np.arange(len(reader))

@@ -8,6 +8,7 @@ training input size) and the input's preparation are the segmenter contract (``c
 from __future__ import annotations
 
 import copy
+import io
 import warnings
 from pathlib import Path
 
@@ -27,18 +28,19 @@ def export_onnx(model: torch.nn.Module, path: str | Path, classes: ClassMap, inp
     net = copy.deepcopy(model).to("cpu").eval()
     w, h = input_size
     dummy = torch.zeros(1, 3, h, w)
+    buffer = io.BytesIO()  # exported in memory, written by Python: a full disk is an OSError naming the file
+    with warnings.catch_warnings(), torch.no_grad():
+        warnings.simplefilter("ignore")
+        torch.onnx.export(
+            net, (dummy,), buffer, input_names=[INPUT_NAME], output_names=[OUTPUT_NAME],
+            dynamic_axes={INPUT_NAME: {0: "batch", 2: "height", 3: "width"},
+                          OUTPUT_NAME: {0: "batch", 2: "logits_height", 3: "logits_width"}},
+            opset_version=opset, dynamo=False,
+        )
+    proto = onnx.load_from_string(buffer.getvalue())
+    for key, value in model_metadata(classes, input_size).items():
+        entry = proto.metadata_props.add()
+        entry.key, entry.value = key, value
     with atomic_file(path) as tmp:
-        with warnings.catch_warnings(), torch.no_grad():
-            warnings.simplefilter("ignore")
-            torch.onnx.export(
-                net, (dummy,), str(tmp), input_names=[INPUT_NAME], output_names=[OUTPUT_NAME],
-                dynamic_axes={INPUT_NAME: {0: "batch", 2: "height", 3: "width"},
-                              OUTPUT_NAME: {0: "batch", 2: "logits_height", 3: "logits_width"}},
-                opset_version=opset, dynamo=False,
-            )
-        proto = onnx.load(str(tmp))
-        for key, value in model_metadata(classes, input_size).items():
-            entry = proto.metadata_props.add()
-            entry.key, entry.value = key, value
-        onnx.save(proto, str(tmp))
+        tmp.write_bytes(proto.SerializeToString())
     return path

@@ -24,17 +24,22 @@ import torch.nn.functional as F
 from .. import __version__
 from ..classes import IGNORE_ID, ClassMap
 from ..device import optimiser_options, pick_device
+from ..errors import LabelsynthError
 from ..metrics import Counts
-from ..outdir import atomic_file, write_text_atomic
+from ..outdir import atomic_file, check_writable, interruptible, write_text_atomic
 from ..progress import console, make_progress
+from .checkpoint import load_checkpoint, save_checkpoint
 from .contract import INPUT_NAME, OUTPUT_NAME, format_input_size, normalize, parse_input_size
 from .data import (VAL_SPLITS, FrameDataset, Split, TrainError, load_sources, make_target, parse_class_weights,
                    split_by_capture)
 from .loss import confusion_counts, segmentation_loss, upsample
-from .model import build_model, input_multiple, resolve_encoder
+from .model import ARCHS, build_model, input_multiple, resolve_encoder
 
 OUTPUTS = ("model.onnx", "checkpoint.pt", "train.json", "curves.png")
-CHECKPOINT_KEYS = {"model", "optimizer", "step", "config", "classes", "history"}
+MAX_STEPS = 10**9
+MAX_BATCH = 4096
+MAX_SIDE = 8192
+MAX_WORKERS = 256
 
 
 @dataclass
@@ -67,24 +72,41 @@ class TrainConfig:
     workers: int = 0
 
     def check(self) -> None:
-        for name, value, low in (("--steps", self.steps, 1), ("--batch-size", self.batch_size, 1), ("--crop", self.crop, 16)):
-            if value < low:
-                raise TrainError(f"{name} {value}: must be at least {low}")
-        if not self.lr > 0:
-            raise TrainError(f"--lr {self.lr}: must be positive")
-        if not 0.0 <= self.min_confidence <= 1.0:
-            raise TrainError(f"--min-confidence {self.min_confidence}: must be in 0..1")
-        if self.expert_weight < 0:
-            raise TrainError(f"--expert-weight {self.expert_weight}: must be >= 0")
-        if self.val_split not in VAL_SPLITS:
-            raise TrainError(f"--val-split {self.val_split!r}: expected one of {', '.join(VAL_SPLITS)}")
-        if self.eval_every is not None and self.eval_every < 1:
-            raise TrainError(f"--eval-every {self.eval_every}: must be at least 1")
+        """Every value of the run, before any source is read: one ``TrainError`` line naming the option."""
+        from ..options import DeviceChoice, OptionError, finite_number, given_text, seed_value, whole_number
+
+        try:
+            self.steps = whole_number(self.steps, "--steps", 1, MAX_STEPS)
+            self.batch_size = whole_number(self.batch_size, "--batch-size", 1, MAX_BATCH)
+            self.crop = whole_number(self.crop, "--crop", 16, MAX_SIDE)
+            self.lr = finite_number(self.lr, "--lr", 0.0, 10.0, low_open=True)
+            self.weight_decay = finite_number(self.weight_decay, "weight_decay", 0.0)
+            self.warmup = finite_number(self.warmup, "warmup", 0.0, 1.0)
+            self.dice_weight = finite_number(self.dice_weight, "--dice-weight", 0.0)
+            self.min_confidence = finite_number(self.min_confidence, "--min-confidence", 0.0, 1.0)
+            self.expert_weight = finite_number(self.expert_weight, "--expert-weight", 0.0)
+            if self.eval_every is not None:
+                self.eval_every = whole_number(self.eval_every, "--eval-every", 1, MAX_STEPS)
+            self.seed = seed_value(self.seed)
+            self.workers = whole_number(self.workers, "--workers", 0, MAX_WORKERS)
+            self.device = DeviceChoice.parse(self.device, "--device").value
+            for option, name in (("--arch", "arch"), ("--encoder", "encoder"), ("--input-size", "input_size"),
+                                 ("--class-weights", "class_weights")):
+                given_text(getattr(self, name), option)
+            if self.arch is not None and self.arch not in ARCHS:
+                raise OptionError(f"--arch must be one of {', '.join(ARCHS)}, not {self.arch!r}")
+            if self.val_split not in VAL_SPLITS:
+                raise OptionError(f"--val-split {self.val_split!r}: expected one of {', '.join(VAL_SPLITS)}")
+            for key in self.val_captures:
+                if not isinstance(key, str) or not key.strip():
+                    raise OptionError(f"--val-captures: an empty source name in {','.join(map(str, self.val_captures))!r}")
+        except OptionError as exc:
+            raise TrainError(str(exc)) from None
         self.resize_to()
 
     def resize_to(self) -> tuple[int, int] | None:
         """``input_size`` as (W, H) every frame is resized to (None: frames keep their size)."""
-        return parse_input_size(self.input_size, error=TrainError, minimum=16)
+        return parse_input_size(self.input_size, error=TrainError, minimum=16, maximum=MAX_SIDE)
 
 
 @dataclass
@@ -118,7 +140,14 @@ class TrainResult:
 def check_out(out: Path, sources: list[str | Path], *, force: bool, resume: bool) -> None:
     """Refuse a non-empty MODEL_DIR (unless ``force``/``resume``) and any MODEL_DIR that is a source.
     Writes nothing: MODEL_DIR is made (``make_out``) only once the sources have been read."""
+    try:
+        check_writable(out)
+    except LabelsynthError as exc:
+        raise TrainError(str(exc)) from None
     for s in sources:
+        if not Path(s).exists():  # a missing path, a dangling link or a symbolic link loop
+            kind = "a symbolic link that leads nowhere (or to itself)" if Path(s).is_symlink() else "not found"
+            raise TrainError(f"{s}: {kind} (expected a labels.h5 or a capture folder)")
         sp = Path(s).resolve()
         if out.resolve() in (sp, sp.parent if sp.is_file() else sp):
             raise TrainError(f"{out}: is a source (or holds one); train never writes into its sources")
@@ -140,21 +169,6 @@ def make_out(out: Path, *, resume: bool) -> None:
     out.mkdir(parents=True, exist_ok=True)
 
 
-def save_checkpoint(path: Path, model, optimizer, step: int, config: TrainConfig, classes: ClassMap,
-                    history: list[dict[str, Any]]) -> None:
-    state = {
-        "model": {k: v.detach().cpu() for k, v in model.state_dict().items()},
-        "optimizer": optimizer.state_dict(),
-        "step": int(step),
-        "config": asdict(config),
-        "classes": json.dumps(classes.to_json(), sort_keys=True),
-        "history": json.dumps(history),
-        "labelsynth_version": __version__,
-    }
-    with atomic_file(path) as tmp:
-        torch.save(state, tmp)
-
-
 def adopt_checkpoint_model(cfg: TrainConfig, saved: dict[str, Any], path: Path) -> None:
     """``--resume`` continues the checkpoint's model: its arch, encoder and input size fill in
     what was not given, and an ``--arch``/``--encoder``/``--input-size`` that differs is refused
@@ -165,24 +179,6 @@ def adopt_checkpoint_model(cfg: TrainConfig, saved: dict[str, Any], path: Path) 
             was = f"{option} {theirs}" if theirs is not None else "the frames' own size"
             raise TrainError(f"{path}: was trained with {was}; --resume cannot continue it with {option} {mine}")
         setattr(cfg, name, theirs)
-
-
-def load_checkpoint(path: Path) -> dict[str, Any]:
-    """checkpoint.pt, checked: a file torch cannot read or that lacks a key is one line naming it."""
-    try:
-        state = torch.load(path, map_location="cpu", weights_only=True)
-    except Exception as exc:
-        reason = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
-        raise TrainError(f"{path}: not a usable checkpoint ({reason[:200]})") from None
-    if not isinstance(state, dict) or not CHECKPOINT_KEYS <= set(state):
-        missing = sorted(CHECKPOINT_KEYS - set(state)) if isinstance(state, dict) else sorted(CHECKPOINT_KEYS)
-        raise TrainError(f"{path}: not a labelsynth train checkpoint (missing {missing})")
-    try:
-        state["classes"] = ClassMap.from_dict(json.loads(state["classes"]), str(path))
-        state["history"] = json.loads(state["history"])
-    except Exception as exc:
-        raise TrainError(f"{path}: not a usable checkpoint (bad class table or history: {exc})") from None
-    return state
 
 
 # --- pieces of the loop ------------------------------------------------------------------------
@@ -276,6 +272,48 @@ def write_curves(path: Path, history: list[dict[str, Any]], class_names: list[st
         plt.close(fig)
 
 
+MIN_SEGFORMER_SIDE = 32
+"""SegFormer's first attention block reduces a stride-4 feature map with an 8x8 convolution:
+inputs below 29 px a side fail inside the model (measured: 28 fails, 29 runs); 32 is the rule."""
+
+
+def check_model_input(cfg: TrainConfig, split: Split) -> None:
+    """Every input the model will see (training crops, whole frames at validation and in the
+    ONNX export) is large enough for it; else one line before any training."""
+    if cfg.arch != "segformer":
+        return  # U-Net/FPN frames are padded to a multiple of 32
+    if cfg.crop < MIN_SEGFORMER_SIDE:
+        raise TrainError(f"--crop {cfg.crop}: SegFormer needs crops of at least {MIN_SEGFORMER_SIDE} px")
+    size = cfg.resize_to()
+    if size is not None:
+        if min(size) < MIN_SEGFORMER_SIDE:
+            raise TrainError(f"--input-size {cfg.input_size}: SegFormer needs both sides of at least "
+                             f"{MIN_SEGFORMER_SIDE} px")
+        return
+    for fr in split.train + split.val:
+        if min(fr.size) < MIN_SEGFORMER_SIDE:
+            raise TrainError(f"{fr.src.path}: frame {fr.name!r} is {fr.size[0]}x{fr.size[1]}; SegFormer needs both sides "
+                             f"of at least {MIN_SEGFORMER_SIDE} px (resize with --input-size WxH)")
+
+
+def check_resumed(model: torch.nn.Module, optimizer: torch.optim.Optimizer, path: Path) -> None:
+    """A resumed model and optimiser hold finite numbers of the parameters' shapes (a checkpoint
+    edited by hand would otherwise fail, or train to NaN, after MODEL_DIR is written)."""
+    for name, value in model.state_dict().items():
+        if value.is_floating_point() and not torch.isfinite(value).all():
+            raise TrainError(f"{path}: the model's {name} holds NaN or infinite values")
+    for group in optimizer.param_groups:
+        for param in group["params"]:
+            for key, value in optimizer.state.get(param, {}).items():
+                if not isinstance(value, torch.Tensor):
+                    continue
+                if value.dim() and value.shape != param.shape:
+                    raise TrainError(f"{path}: the optimiser's {key} has shape {tuple(value.shape)} for a parameter of "
+                                     f"shape {tuple(param.shape)}")
+                if value.is_floating_point() and not torch.isfinite(value).all():
+                    raise TrainError(f"{path}: the optimiser's {key} holds NaN or infinite values")
+
+
 def _infinite(loader):
     while True:
         yield from loader
@@ -284,7 +322,16 @@ def _infinite(loader):
 # --- the run -----------------------------------------------------------------------------------
 def train(sources: list[str | Path], out: str | Path, cfg: TrainConfig | None = None, *, force: bool = False,
           resume: bool = False, progress: bool = True, log=None) -> TrainResult:
-    """Train a 2D segmenter on ``sources`` (labels.h5 files and capture folders) into ``out``."""
+    """Train a 2D segmenter on ``sources`` (labels.h5 files and capture folders) into ``out``.
+
+    Ctrl-C or SIGTERM during training saves the checkpoint of the last finished step and
+    train.json (``interrupted``), then re-raises; a second one exits at once."""
+    with interruptible():
+        return _train(sources, out, cfg, force=force, resume=resume, progress=progress, log=log)
+
+
+def _train(sources: list[str | Path], out: str | Path, cfg: TrainConfig | None, *, force: bool, resume: bool,
+           progress: bool, log) -> TrainResult:
     cfg = cfg or TrainConfig()
     cfg.check()
     out = Path(out)
@@ -295,6 +342,7 @@ def train(sources: list[str | Path], out: str | Path, cfg: TrainConfig | None = 
     if state is not None:  # what the model is comes from the checkpoint; asking for another is an error
         adopt_checkpoint_model(cfg, state["config"], out / "checkpoint.pt")
     cfg.arch = cfg.arch or "segformer"
+    cfg.encoder = resolve_encoder(cfg.arch, cfg.encoder)
 
     loaded, classes = load_sources(list(sources), cfg.only_annotated)
     if state is not None and state["classes"].to_json() != classes.to_json():
@@ -303,8 +351,7 @@ def train(sources: list[str | Path], out: str | Path, cfg: TrainConfig | None = 
     split = split_by_capture(loaded, cfg.val_captures, cfg.val_split)
     if not split.train:
         raise TrainError("no training frames are left after the validation split")
-    say(split.description)
-    cfg.encoder = resolve_encoder(cfg.arch, cfg.encoder)
+    check_model_input(cfg, split)
     eval_every = cfg.eval_every or max(1, cfg.steps // 10)
 
     device = pick_device(cfg.device)
@@ -316,13 +363,15 @@ def train(sources: list[str | Path], out: str | Path, cfg: TrainConfig | None = 
         try:
             model.load_state_dict(state["model"])
             optimizer.load_state_dict(state["optimizer"])
-        except (RuntimeError, ValueError, KeyError) as exc:
+        except (RuntimeError, ValueError, KeyError, TypeError, IndexError) as exc:
             raise TrainError(f"{out / 'checkpoint.pt'}: does not fit a {cfg.arch}/{cfg.encoder} model "
-                             f"({str(exc).splitlines()[0][:200]})") from None
+                             f"({str(exc).splitlines()[0][:200] if str(exc) else type(exc).__name__})") from None
+        check_resumed(model, optimizer, out / "checkpoint.pt")
         step = resumed_from = int(state["step"])
         history = [h for h in state["history"] if h["step"] <= step]
         say(f"resuming from step {step} of {out / 'checkpoint.pt'}")
     load_seconds = time.perf_counter() - t0
+    say(split.description)
     make_out(out, resume=resume)  # every source and option has been checked: now MODEL_DIR is written
 
     from .augment import build_augment
@@ -339,7 +388,7 @@ def train(sources: list[str | Path], out: str | Path, cfg: TrainConfig | None = 
     train_start = time.perf_counter()
     window: list[float] = []
     ema = None
-    interrupted = False
+    interrupted: KeyboardInterrupt | None = None
 
     def record(val: bool = True) -> None:
         entry: dict[str, Any] = {"step": step, "seconds": round(time.perf_counter() - train_start, 3),
@@ -373,8 +422,8 @@ def train(sources: list[str | Path], out: str | Path, cfg: TrainConfig | None = 
                 if step % eval_every == 0 or step == cfg.steps:
                     record()
                     save_checkpoint(ckpt, model, optimizer, step, cfg, classes, history)
-    except KeyboardInterrupt:
-        interrupted = True
+    except KeyboardInterrupt as exc:  # Ctrl-C, or SIGTERM (outdir.Interrupted)
+        interrupted = exc
         if window:
             record(val=False)
         save_checkpoint(ckpt, model, optimizer, step, cfg, classes, history)
@@ -382,7 +431,7 @@ def train(sources: list[str | Path], out: str | Path, cfg: TrainConfig | None = 
     train_seconds = time.perf_counter() - train_start
 
     export_seconds = 0.0
-    if not interrupted:
+    if interrupted is None:
         if not history or history[-1]["step"] != step:  # e.g. resumed at or past --steps
             record()
             save_checkpoint(ckpt, model, optimizer, step, cfg, classes, history)
@@ -404,7 +453,7 @@ def train(sources: list[str | Path], out: str | Path, cfg: TrainConfig | None = 
         "device": str(device),
         "step": step,
         "resumed_from": resumed_from,
-        "interrupted": interrupted,
+        "interrupted": interrupted is not None,
         "history": history,
         "times": {"load_s": round(load_seconds, 3), "train_s": round(train_seconds, 3),
                   "export_s": round(export_seconds, 3), "total_s": round(seconds, 3)},
@@ -412,7 +461,7 @@ def train(sources: list[str | Path], out: str | Path, cfg: TrainConfig | None = 
                     "output": f"{OUTPUT_NAME} (N,C,h,w)", "input_size": format_input_size(_frame_size(split, cfg))},
     }
     write_text_atomic(out / "train.json", json.dumps(report, indent=2))
-    if interrupted:
-        raise KeyboardInterrupt
+    if interrupted is not None:
+        raise interrupted
     return TrainResult(out, step, cfg.steps, seconds, str(device), history, split.description, len(split.train),
                        len(split.val), resumed_from)

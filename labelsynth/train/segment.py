@@ -29,18 +29,20 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from ..capture.check import check_image_files
 from ..capture.images import list_images, read_image
 from ..capture.load import capture_white_background
 from ..capture.masks import write_mask
 from ..classes import IGNORE_ID, ClassMap, parse_id_pairs
 from ..errors import LabelsynthError
-from ..outdir import building
+from ..outdir import building, check_apart
 from ..progress import make_progress
 from .contract import (IMAGENET_MEAN, IMAGENET_STD, INPUT_NAME, META_INPUT_SIZE, metadata_id_map, model_input,
                        parse_input_size)
 
 DEFAULT_INPUT_SIZE = (512, 512)  # (width, height) of a foreign model with no size of its own
 DEVICES = ("auto", "cpu", "cuda")
+MAX_BATCH = 4096
 _RESIZE_CHANNELS = 4  # cv2.resize is only safe for a few channels at a time
 
 
@@ -56,6 +58,8 @@ def parse_id_map(text: str | Mapping[int, int] | None) -> dict[int, int] | None:
     """
     if text is None:
         return None
+    if isinstance(text, str) and not text.strip():
+        raise SegmentError("--id-map must not be empty (leave the option out to keep the model's own map)")
     pairs = parse_id_pairs(text, int, "--id-map", "source:target", "0:0,1:1,2:3", SegmentError)
     result: dict[int, int] = {}
     for src, dst in pairs:
@@ -75,7 +79,15 @@ def resolve_out_dir(capture: Path, out: Path | None, into_capture: bool) -> Path
         raise SegmentError("give either --out DIR or --into-capture, not both")
     if out is None and not into_capture:
         raise SegmentError("say where the masks go: --out DIR, or --into-capture to write CAPTURE/predictions/")
-    return Path(capture) / "predictions" if into_capture else Path(out)  # type: ignore[arg-type]
+    if into_capture:
+        return Path(capture) / "predictions"
+    out = Path(out)  # type: ignore[arg-type]
+    try:
+        check_apart(out, {"the capture": capture})
+    except LabelsynthError as exc:
+        raise SegmentError(f"{exc} (segment writes into a capture only with --into-capture: CAPTURE/predictions/)") \
+            from None
+    return out
 
 
 # --- the segmenter ------------------------------------------------------------------------
@@ -329,12 +341,14 @@ def segment_capture(
     protect an existing CAPTURE/predictions/). The capture's images are only read.
     """
     capture, model, out_dir = Path(capture), Path(model), Path(out_dir)
-    if batch_size < 1:
-        raise SegmentError(f"--batch-size {batch_size}: must be at least 1")
+    from ..options import whole_number
+
+    batch_size = whole_number(batch_size, "--batch-size", 1, MAX_BATCH)
     images = list_images(capture / "images")
     classes = ClassMap.of_capture(capture)
     white_background = capture_white_background(capture)  # RGBA frames: the field's pixels
     segmenter = OnnxSegmenter(model, device=device, input_size=input_size, id_map=id_map)
+    check_image_files(images, capture, white_background=white_background).raise_if_problems()
 
     targets = [out_dir / f"{p.stem}.png" for p in images]
     existing = sum(t.exists() for t in targets)

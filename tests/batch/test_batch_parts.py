@@ -157,7 +157,7 @@ def test_bad_options_fail_before_any_capture_or_ray(tmp_path):
     with pytest.raises(LabelsynthError, match="--labels must be one of"):
         run_batch(tmp_path, tmp_path / "out", ExpandOptions(labels="all"))
     _capture(tmp_path / "c")
-    with pytest.raises(Exception, match="unknown recipe 'nope'"):
+    with pytest.raises(Exception, match="--recipe 'nope': unknown recipe"):
         run_batch(tmp_path, tmp_path / "out", ExpandOptions(recipe="nope"))
     assert not (tmp_path / "out").exists()
 

@@ -27,6 +27,8 @@ from labelsynth.batch.discover import BatchError  # noqa: E402
 from labelsynth.cli import app  # noqa: E402
 from labelsynth.export import LabelsDataset, read_labels_h5  # noqa: E402
 
+from .workers import descendants, local_node, raylet_pid, task_pid  # noqa: E402
+
 pytestmark = pytest.mark.xdist_group("ray")
 
 # A few seconds of fitting per capture: enough for every output file, not for good masks.
@@ -36,7 +38,6 @@ TINY = ["geometry.iterations=40", "semantic.iterations=30", "geometry.train_scal
         "semantic.rays_per_batch=512"]
 CLI_ARGS = ["--recipe", "fast", "--labels", "annotations", "--no-report", "--cpus-per-capture", "1",
             *[a for o in TINY for a in ("--set", o)]]
-TASK_TITLE = "ray::labelsynth-expand"  # Ray's process title while a worker runs our task
 
 
 def _options() -> ExpandOptions:
@@ -135,28 +136,15 @@ def test_gpus_on_a_cluster_without_them_is_a_clear_error(ray_local, captures, tm
         run_batch(root / "alpha", tmp_path / "out", _options(), cpus_per_capture=3, progress=False)
 
 
-def _task_pid(timeout: float) -> int | None:
-    """The pid of a worker while it runs our task (its process title names the task)."""
-    end = time.time() + timeout
-    while time.time() < end:
-        for proc in Path("/proc").iterdir():
-            if proc.name.isdigit():
-                try:
-                    if (proc / "cmdline").read_bytes().startswith(TASK_TITLE.encode()):
-                        return int(proc.name)
-                except OSError:
-                    pass
-        time.sleep(0.2)
-    return None
-
-
 def _kill_worker_during(retries: int, root: Path, out: Path):
     box = {}
     thread = threading.Thread(target=lambda: box.update(result=run_batch(
         root / "alpha", out, _options(), cpus_per_capture=1, retries=retries, force=True, progress=False)))
     thread.start()
-    pid = _task_pid(120)
+    raylet = raylet_pid(local_node())  # only this test's Ray: never a worker of another Ray on the machine
+    pid = task_pid(raylet, 120)
     assert pid is not None, "the task never started"
+    assert pid in descendants(raylet)
     time.sleep(1.0)
     os.kill(pid, signal.SIGKILL)
     thread.join(300)
@@ -171,7 +159,7 @@ def test_a_worker_killed_with_minus_9(ray_local, captures, tmp_path):
     assert not (tmp_path / "no_retry" / "captures" / "alpha").exists()  # only alpha.partial, if anything
     row, pid = _kill_worker_during(1, root, tmp_path / "retried")
     assert row.status == "done", row.reason
-    assert _task_pid(0.1) != pid
+    assert task_pid(raylet_pid(local_node()), 0.1) != pid
     assert (tmp_path / "retried" / "captures" / "alpha" / "labels.h5").is_file()
 
 

@@ -211,7 +211,7 @@ def test_bad_inputs_are_one_line_errors(tiny_expanded, tmp_path):
     from labelsynth.rundir import RunFolderError
 
     out = _copy_out(tiny_expanded, tmp_path / "out")
-    with pytest.raises(AugmentError, match="--views must be a whole number of at least 1, got 0"):
+    with pytest.raises(LabelsynthError, match=r"--views must be a whole number in 1\.\.100000, not 0"):
         augment(out, 0, progress=False)
     with pytest.raises(RunFolderError, match="not found"):
         augment(tmp_path / "nowhere", 2, progress=False)

@@ -15,6 +15,7 @@ from typer.testing import CliRunner
 from labelsynth.classes import IGNORE_ID, ClassMap
 from labelsynth.cli import app
 from labelsynth.export import LabelsWriter
+from labelsynth.train.checkpoint import load_checkpoint
 from labelsynth.train.data import TrainError, load_sources, make_target, split_by_capture
 from labelsynth.train.loss import segmentation_loss
 
@@ -128,12 +129,12 @@ def test_resume_continues_the_step_count(sources, tmp_path):
     assert report["resumed_from"] == 2 and report["step"] == 4
     assert report["split"]["train_frames"] == 4 and "training on all 4 frames given" in report["split"]["description"]
     assert [h["step"] for h in report["history"]] == [1, 2, 3, 4]
-    assert torch.load(out / "checkpoint.pt", weights_only=True)["step"] == 4
+    assert load_checkpoint(out / "checkpoint.pt")["step"] == 4
     for option, value in (("--arch", "unet"), ("--encoder", "b1"), ("--input-size", "32x24")):
         refused = _invoke(sources["cap0"], sources["cap1"], "--out", out, *TINY[2:], "--steps", "5", "--resume",
                           option, value)
         _one_line_error(refused, str(out / "checkpoint.pt"), f"{option} {value}")
-    assert torch.load(out / "checkpoint.pt", weights_only=True)["step"] == 4  # refused runs changed nothing
+    assert load_checkpoint(out / "checkpoint.pt")["step"] == 4  # refused runs changed nothing
     same = _invoke(sources["cap0"], sources["cap1"], "--out", out, *TINY[2:], "--steps", "4", "--resume",
                    "--arch", "segformer", "--encoder", "b0")
     assert same.exit_code == 0, same.output  # naming the checkpoint's own model is fine
@@ -156,7 +157,7 @@ def test_interrupt_saves_a_checkpoint_that_resumes(sources, tmp_path, monkeypatc
     cfg = loop.TrainConfig(steps=5, batch_size=2, crop=32, device="cpu", eval_every=100)
     with pytest.raises(KeyboardInterrupt):
         loop.train([sources["cap0"], sources["cap1"]], out, cfg, progress=False, log=lambda m: None)
-    assert torch.load(out / "checkpoint.pt", weights_only=True)["step"] == 2
+    assert load_checkpoint(out / "checkpoint.pt")["step"] == 2
     assert json.loads((out / "train.json").read_text())["interrupted"] is True
     monkeypatch.setattr(loop, "segmentation_loss", real)
     res = loop.train([sources["cap0"], sources["cap1"]], out, loop.TrainConfig(steps=3, batch_size=2, crop=32,

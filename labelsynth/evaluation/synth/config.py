@@ -7,13 +7,13 @@ from dataclasses import dataclass, field, fields
 from pathlib import Path
 from typing import Literal
 
-import numpy as np
-
 from ...errors import LabelsynthError
 
 BACKGROUND, GRANULATION, SLOUGH, NECROTIC, EPITHELIAL, UNKNOWN = 0, 1, 2, 3, 4, 5
 WOUND_CLASSES = (GRANULATION, SLOUGH, NECROTIC, EPITHELIAL, UNKNOWN)
 LAYOUTS = ("one-sided", "all-around", "all-around-uneven")
+MAX_FRAMES = 10_000
+MAX_SIDE = 8192
 
 
 @dataclass
@@ -72,24 +72,21 @@ class SynthConfig:
         return cls(**{**PHONE, **overrides})
 
     def __post_init__(self) -> None:
+        from ...options import finite_number, seed_value, whole_number
+
         if self.layout not in LAYOUTS:
-            raise LabelsynthError(f"synth: layout must be one of {', '.join(LAYOUTS)}, got {self.layout!r}")
-        if self.frames < 2:
-            raise LabelsynthError(f"synth: need at least 2 frames, got {self.frames}")
-        if not 0 <= self.annotated <= self.frames:
-            raise LabelsynthError(f"synth: annotated must be in 0..{self.frames}, got {self.annotated}")
-        if self.width < 16 or self.height < 16:
-            raise LabelsynthError(f"synth: image size must be at least 16x16, got {self.width}x{self.height}")
-        if not np.isfinite(self.noise) or self.noise < 0:
-            raise LabelsynthError(f"synth: noise must be >= 0, got {self.noise}")
+            raise LabelsynthError(f"--layout must be one of {', '.join(LAYOUTS)}, not {self.layout!r}")
+        self.frames = whole_number(self.frames, "--frames", 2, MAX_FRAMES)
+        self.annotated = whole_number(self.annotated, "--annotated", 0, self.frames)
+        self.width = whole_number(self.width, "--width", 16, MAX_SIDE)
+        self.height = whole_number(self.height, "--height", 16, MAX_SIDE)
+        self.noise = finite_number(self.noise, "--noise", 0.0)
+        self.seed = seed_value(self.seed)
         limits = {"exposure_drift": 3.0, "white_balance_drift": 0.5, "defocus_blur": 40.0, "motion_blur": 80.0,
                   "sensor_noise": 50.0, "distance_change": 1.0, "zoom": 1.0}
         for name, top in limits.items():
-            value = getattr(self, name)
-            if not (np.isfinite(value) and 0 <= value <= top):
-                raise LabelsynthError(f"synth: {name.replace('_', '-')} must be in 0..{top:g}, got {value}")
-        if not (isinstance(self.jpeg_quality, (int, np.integer)) and 0 <= self.jpeg_quality <= 100):
-            raise LabelsynthError(f"synth: jpeg-quality must be an integer in 0..100 (0: PNG), got {self.jpeg_quality}")
+            setattr(self, name, finite_number(getattr(self, name), "--" + name.replace("_", "-"), 0.0, top))
+        self.jpeg_quality = whole_number(self.jpeg_quality, "--jpeg-quality", 0, 100)
 
     @property
     def varied(self) -> dict[str, float]:

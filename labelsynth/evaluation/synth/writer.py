@@ -9,6 +9,7 @@ truth. JPEG compression (``jpeg_quality``) happens when the image is written.
 
 from __future__ import annotations
 
+import io
 import json
 import time
 from dataclasses import asdict
@@ -104,6 +105,8 @@ def _write_frame(cap: Path, truth_dir: Path, name: str, frame: SynthFrame, *, an
     write_image(cap / "images" / f"{name}{suffix}", frame.image, jpeg_quality=jpeg_quality or None)
     write_mask(cap / "predictions" / f"{name}.png", frame.prediction)
     write_mask(truth_dir / f"{name}.png", frame.truth)
-    np.save(truth_dir / "depth" / f"{name}.npy", frame.depth)
+    buffer = io.BytesIO()  # written by Python, so that a full disk is an OSError naming the file
+    np.save(buffer, frame.depth)
+    (truth_dir / "depth" / f"{name}.npy").write_bytes(buffer.getbuffer())
     if annotated:
         write_mask(cap / "annotations" / f"{name}.png", frame.truth)
