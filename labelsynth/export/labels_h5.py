@@ -540,21 +540,25 @@ class LabelsReader:
         except (OSError, KeyError, ValueError) as exc:
             raise LabelsReadError(f"{self.path}: frame {i} cannot be read ({_first_line(exc)})") from None
 
+    def read_checked(self, i: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """``read``, and a check of what ``read`` does not: the mask holds only the class table's
+        ids (or 255), the confidences are finite and in 0..1 (one line naming the file and frame).
+        What a reader of a hand-edited or foreign file uses (``export``), frame by frame."""
+        image, mask, confidence = self.read(i)
+        what = f"{self.path}: frame {i} ({self.frame_names[i]!r})"
+        try:
+            check_mask_ids(np.asarray(mask), valid_id_table(self.classes), what)
+        except ExportError as exc:
+            raise LabelsReadError(str(exc)) from None
+        conf = np.asarray(confidence, dtype=np.float32)
+        if not np.isfinite(conf).all() or conf.min(initial=0.0) < 0 or conf.max(initial=0.0) > 1:
+            raise LabelsReadError(f"{what}: confidence must be finite and in 0..1")
+        return image, mask, confidence
+
     def verify(self) -> None:
-        """Read every frame once and check what ``read`` does not: masks hold only the class
-        table's ids (or 255), confidences are finite and in 0..1. A reader of a hand-edited
-        or foreign file calls it before training on it (one line naming the frame)."""
-        valid = valid_id_table(self.classes)
+        """``read_checked`` every frame once: before training on a file (one line naming the frame)."""
         for i in range(len(self)):
-            _, mask, confidence = self.read(i)
-            what = f"{self.path}: frame {i} ({self.frame_names[i]!r})"
-            try:
-                check_mask_ids(np.asarray(mask), valid, what)
-            except ExportError as exc:
-                raise LabelsReadError(str(exc)) from None
-            conf = np.asarray(confidence, dtype=np.float32)
-            if not np.isfinite(conf).all() or conf.min(initial=0.0) < 0 or conf.max(initial=0.0) > 1:
-                raise LabelsReadError(f"{what}: confidence must be finite and in 0..1")
+            self.read_checked(i)
 
     def __getstate__(self) -> dict[str, Any]:  # DataLoader workers open their own handle
         return {**self.__dict__, "_handle": None, "_pid": None}

@@ -107,10 +107,10 @@ def suggest(
     rec = opts.check()
     capture_dir = Path(capture_dir)
     out = default_out(capture_dir) if out is None else Path(out)
+    check_out(out, force)  # first: a looping or dangling link is refused there, before resolve() meets it
     if capture_dir.is_dir() and out.resolve().is_relative_to(capture_dir.resolve()):
         raise OptionError(f"--out {out}: inside the capture {capture_dir} (labelsynth never writes there); "
                           "choose a folder outside it")
-    check_out(out, force)
     capture = load_capture(capture_dir)
     if opts.annotate > len(capture):
         raise OptionError(f"--annotate {opts.annotate}: {capture_dir} has only {len(capture)} frames")

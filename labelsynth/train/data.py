@@ -154,13 +154,22 @@ def load_source(path: str | Path, only_annotated: bool = False) -> Source:
     raise TrainError(f"{path}: no such labels.h5 or capture folder")
 
 
+def require_source(path: str | Path) -> Path:
+    """``path`` exists (one line if it is missing, a dangling link or a symbolic link loop)."""
+    path = Path(path)
+    if not path.exists():
+        kind = "a symbolic link that leads nowhere (or to itself)" if path.is_symlink() else "not found"
+        raise TrainError(f"{path}: {kind} (expected a labels.h5 or a capture folder)")
+    return path
+
+
 def load_sources(paths: list[str | Path], only_annotated: bool = False) -> tuple[list[Source], ClassMap]:
     """Every source, and the one class table they share (a clear error naming the odd file)."""
     if not paths:
         raise TrainError("give at least one SOURCE (a labels.h5 or a capture folder)")
     seen: dict[Path, str | Path] = {}
     for p in paths:
-        key = Path(p).resolve()
+        key = require_source(p).resolve()
         if key in seen:
             raise TrainError(f"{p}: given twice as a SOURCE (also as {seen[key]})")
         seen[key] = p

@@ -31,7 +31,7 @@ from ..progress import console, make_progress
 from .checkpoint import load_checkpoint, save_checkpoint
 from .contract import INPUT_NAME, OUTPUT_NAME, format_input_size, normalize, parse_input_size
 from .data import (VAL_SPLITS, FrameDataset, Split, TrainError, load_sources, make_target, parse_class_weights,
-                   split_by_capture)
+                   require_source, split_by_capture)
 from .loss import confusion_counts, segmentation_loss, upsample
 from .model import ARCHS, build_model, input_multiple, resolve_encoder
 
@@ -145,10 +145,7 @@ def check_out(out: Path, sources: list[str | Path], *, force: bool, resume: bool
     except LabelsynthError as exc:
         raise TrainError(str(exc)) from None
     for s in sources:
-        if not Path(s).exists():  # a missing path, a dangling link or a symbolic link loop
-            kind = "a symbolic link that leads nowhere (or to itself)" if Path(s).is_symlink() else "not found"
-            raise TrainError(f"{s}: {kind} (expected a labels.h5 or a capture folder)")
-        sp = Path(s).resolve()
+        sp = require_source(s).resolve()
         if out.resolve() in (sp, sp.parent if sp.is_file() else sp):
             raise TrainError(f"{out}: is a source (or holds one); train never writes into its sources")
     if out.exists() and not out.is_dir():

@@ -33,13 +33,14 @@ import numpy as np
 from ..capture.view import capture_view
 from ..classes import BACKGROUND_ID, WOUND_BED, ClassMap
 from ..errors import LabelsynthError
-from ..outdir import write_text_atomic
+from ..outdir import check_apart, check_writable, write_text_atomic
 from ..progress import console
 from ..rundir import LABELS_FILE
-from .data import TrainError
+from .data import TrainError, load_sources
 from .loop import TrainConfig
 
 MODES = ("predictions", "both", "raw")
+MAX_ROUNDS = 1000
 
 
 class SelfTrainError(TrainError):
@@ -68,11 +69,25 @@ class SelfTrainConfig:
     """Every round trains a new model from scratch with these settings."""
 
     def check(self) -> None:
-        if self.rounds < 1:
-            raise SelfTrainError(f"--rounds {self.rounds}: must be at least 1")
-        if self.labels not in MODES:
-            raise SelfTrainError(f"--labels {self.labels!r}: expected one of {', '.join(MODES)}")
+        """Every value, and the recipe expand will use (file, keys, types, ranges) and the device,
+        before any work: one ``SelfTrainError`` line naming the option."""
+        from ..options import OptionError, whole_number
+
+        try:
+            self.rounds = whole_number(self.rounds, "--rounds", 1, MAX_ROUNDS)
+            if self.labels not in MODES:
+                raise OptionError(f"--labels {self.labels!r}: expected one of {', '.join(MODES)}")
+            self.expand_options().check()
+        except LabelsynthError as exc:
+            raise SelfTrainError(str(exc)) from None
         self.train.check()
+
+    def expand_options(self, labels: str | None = None):
+        """``expand``'s options in every round (``labels``: the round's label mode)."""
+        from ..options import ExpandOptions
+
+        return ExpandOptions(labels=labels, recipe=self.recipe, device=self.device, seed=self.seed,
+                             overrides=list(self.overrides), report=False)
 
 
 @dataclass
@@ -123,12 +138,9 @@ def _fmt(v: float | None) -> str:
 def _expand(capture: Path, out: Path, labels: str, cfg: SelfTrainConfig) -> Path:
     """``expand CAPTURE --out OUT --labels L --recipe R --no-report``: the loop's one call into the
     pipeline; returns OUT/labels.h5."""
-    from ..options import ExpandOptions
     from ..pipeline import expand
 
-    options = ExpandOptions(labels=labels, recipe=cfg.recipe, device=cfg.device, seed=cfg.seed,
-                            overrides=list(cfg.overrides), report=False)
-    expand(capture, out, options, force=True, progress=False)
+    expand(capture, out, cfg.expand_options(labels), force=True, progress=False)
     return out / LABELS_FILE
 
 
@@ -201,9 +213,41 @@ def _same_settings(previous: dict | None, settings: dict) -> bool:
     if previous is None:
         return False
     a, b = json.loads(json.dumps(previous)), json.loads(json.dumps(settings))
+    if not isinstance(a.get("config"), dict):
+        return False  # not what this version writes: other settings
     a["config"].pop("rounds", None)
     b["config"].pop("rounds", None)
     return a == b
+
+
+def _resolved(path: Path) -> Path:
+    try:
+        return path.resolve()
+    except (OSError, RuntimeError):  # a looping link: refused where it is read
+        return path
+
+
+def _check_out(out: Path, inputs: list[tuple[str, Path]]) -> None:
+    """OUT can be made (``outdir.check_writable``), is a folder if it exists, and is inside none
+    of the ``inputs`` (label, path): a capture is never written into."""
+    check_writable(out)
+    if out.exists() and not out.is_dir():
+        raise SelfTrainError(f"{out}: exists and is not a folder")
+    for label, path in inputs:
+        check_apart(out, {label: path})
+
+
+def _previous_settings(state_file: Path) -> dict | None:
+    """The settings an earlier run in OUT recorded (None: no selftrain.json); one line if unreadable."""
+    if not state_file.exists():
+        return None
+    try:
+        state = json.loads(state_file.read_text(encoding="utf-8"))
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
+        raise SelfTrainError(f"{state_file}: unreadable ({exc}); use --force to start over") from None
+    if not isinstance(state, dict) or not isinstance(state.get("settings", {}), dict):
+        raise SelfTrainError(f"{state_file}: not a selftrain.json (use --force to start over)")
+    return state.get("settings")
 
 
 # --- the loop -----------------------------------------------------------------------------------
@@ -218,8 +262,9 @@ def selftrain(captures: list[str | Path], model: str | Path, out: str | Path, cf
     score every round's model (round 0 included) and are each round's validation; they are
     never trained on. Returns the rounds' scores; OUT/selftrain.json holds them too.
     """
-    from ..capture import load_capture
+    from ..capture import check_capture, load_capture
     from .loop import train
+    from .segment import OnnxSegmenter
 
     cfg = cfg or SelfTrainConfig()
     cfg.check()
@@ -230,32 +275,48 @@ def selftrain(captures: list[str | Path], model: str | Path, out: str | Path, cf
     also = [Path(a) for a in also]
     if not captures:
         raise SelfTrainError("give at least one CAPTURE to label")
-    if not model.is_file():
-        raise SelfTrainError(f"{model}: model file not found")
     for group, paths in (("CAPTURE", captures), ("--holdout", holdout)):
         for p in paths:
             if not p.is_dir():
                 raise SelfTrainError(f"{p}: {group} is not a capture folder")
-    trained = {p.resolve() for p in [*captures, *also]}
+    seen: dict[Path, Path] = {}
+    for p in [*captures, *also]:
+        if _resolved(p) in seen:
+            raise SelfTrainError(f"{p}: given twice (also as {seen[_resolved(p)]})")
+        seen[_resolved(p)] = p
+    trained = set(seen)
     for h in holdout:
-        if h.resolve() in trained:
+        if _resolved(h) in trained:
             raise SelfTrainError(f"{h}: a --holdout capture cannot also be trained on")
     loaded = [load_capture(c) for c in captures]  # a bad capture fails now, before any work
+    held = [load_capture(h) for h in holdout]
+    for cap in [*loaded, *held]:  # every frame segment will read decodes, at its camera's size
+        check_capture(cap, labels=None).raise_if_problems()
     classes = loaded[0].classes
     for c, cap in zip(captures, loaded):
         if cap.classes.to_json() != classes.to_json():
             raise SelfTrainError(f"{c}: its class table differs from {captures[0]}'s")
         if cfg.labels == "both" and not cap.has_annotations:
             raise SelfTrainError(f"{c / 'annotations'}: --labels both needs expert frames in every capture")
-    for h in holdout:
-        if not load_capture(h).has_annotations:
+    for h, cap in zip(holdout, held):
+        if not cap.has_annotations:
             raise SelfTrainError(f"{h / 'annotations'}: a --holdout capture needs annotations to score against")
+    _check_out(out, [*(("the capture", c) for c in captures), *(("the --holdout capture", h) for h in holdout),
+                     *(("the --also source", a) for a in also)])
+    OnnxSegmenter(model, cfg.device)  # opened now: a file that is not a segmenter fails before OUT exists
+    if also:  # every --also source read and checked now (train reads them again each round)
+        try:
+            _, also_classes = load_sources(also)
+        except LabelsynthError as exc:
+            raise SelfTrainError(f"--also {exc}") from None
+        if also_classes.to_json() != classes.to_json():
+            raise SelfTrainError(f"--also {also[0]}: its class table differs from {captures[0]}'s")
 
     settings = {"captures": [str(c) for c in captures], "model": str(model), "holdout": [str(h) for h in holdout],
                 "also": [str(a) for a in also], "config": asdict(cfg)}
     state_file = out / "selftrain.json"
     if out.exists() and not force:
-        previous = json.loads(state_file.read_text()).get("settings") if state_file.is_file() else None
+        previous = _previous_settings(state_file)
         if not _same_settings(previous, settings):
             what = "was made with other settings" if previous is not None else "exists and is not a selftrain folder"
             raise SelfTrainError(f"{out}: {what} (use --force to start over)")

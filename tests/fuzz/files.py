@@ -18,11 +18,18 @@ import numpy as np
 import torch
 
 from .harness import Case, deny_writes_under, disk_full_after
-from .world import World
+from .world import TINY_FIELD, World
 
 Setup = Callable[[World], None]
 
 EXPAND = ["expand", "{cap}", "--out", "{out}", "--recipe", "fast", "--device", "cpu"]
+EXPAND_GEOMETRY = [*EXPAND, "--geometry", "{run}", *(a for v in TINY_FIELD for a in ("--set", v))]
+"""expand reusing the world's run's geometry: same capture, geometry recipe (fast and the tiny
+field's overrides) and seed, so it is accepted."""
+SUGGEST = ["suggest", "{cap}", "--annotate", "2", "--out", "{out}", "--recipe", "fast", "--device", "cpu"]
+SELFTRAIN = ["selftrain", "{cap}", "--model", "{model}", "--out", "{out}", "--rounds", "1", "--steps", "1",
+             "--batch-size", "1", "--crop", "32", "--recipe", "fast", "--device", "cpu"]
+EXPORT = ["export", "{run}", "--format", "coco", "--to", "{out}"]
 BENCH = ["bench", "{cap}", "--truth", "{truth}", "--out", "{out}", "--recipe", "fast", "--device", "cpu"]
 TRAIN = ["train", "{cap}", "{h5}", "--out", "{out}", "--steps", "1", "--batch-size", "1", "--crop", "32",
          "--device", "cpu"]
@@ -553,6 +560,100 @@ def file_cases() -> list[Case]:
         lambda w: __import__("shutil").rmtree(w.cap / "annotations"))
     add("expand-out-exists", EXPAND, ("{out}", "--force"), write("{out}/mine.txt", "keep me"))
     add("expand-mm-per-unit-huge", [*EXPAND, "--mm-per-unit", "1e400"], ("--mm-per-unit",))
+
+    # --- expand --geometry: the geometry of another run (suggest's or expand's OUT, or its field.pt) ----
+    geometry_breaks = {
+        "partial-only": (lambda w: os.rename(w.run, w.root / "run.partial"), ("{run}", "not finished")),
+        "no-field": (remove("{run}/field.pt"), ("{run}", "field.pt")),
+        "field-tampered": (tampered_torch("{run}/field.pt"), ("field.pt", "refused")),
+        "field-truncated": (truncate("{run}/field.pt"), ("field.pt",)),
+        "field-zero-byte": (write("{run}/field.pt", b""), ("field.pt",)),
+        "field-a-pickle": (pickle_file("{run}/field.pt"), ("field.pt",)),
+        "field-nan-weights": (field_edit(lambda m, t: [v.fill_(float("nan")) for k, v in t.items()
+                                                       if k.startswith("sdf.") and v.is_floating_point()]),
+                              ("field.pt",)),
+        "fingerprint-not-a-dict": (field_edit(lambda m, t: m.update(fitted_on=[1, 2])), ("field.pt",)),
+        "no-fingerprint": (field_edit(lambda m, t: m.pop("fitted_on")), ("field.pt",)),
+        "image-changed": (png(IMG0, np.full((40, 40, 3), 90, np.uint8)), ("view_00",)),
+        "pose-changed": (edit_json(TRANSFORMS, matrix_value(0, 3, 0.123)), ("view_01",)),
+    }
+    for name, (setup, expect) in geometry_breaks.items():
+        add(f"expand-geometry-{name}", EXPAND_GEOMETRY, expect, setup)
+    add("expand-geometry-other-seed", [*EXPAND_GEOMETRY, "--seed", "1"], ("seed",))
+    add("expand-geometry-other-recipe", [*EXPAND, "--geometry", "{run}"], ("field.pt", "recipe"))
+    add("expand-geometry-the-partial", [*EXPAND_GEOMETRY, "--geometry", "{root}/run.partial"], ("run.partial",),
+        lambda w: os.rename(w.run, w.root / "run.partial"))
+    add("expand-geometry-the-capture", [*EXPAND_GEOMETRY, "--geometry", "{cap}"], ("{cap}", "field.pt"))
+    add("expand-geometry-other-capture", [*EXPAND_GEOMETRY[:1], "{root}/small", *EXPAND_GEOMETRY[2:]],
+        ("field.pt",), lambda w: _small_capture(w))
+
+    # --- suggest beyond the generic cases --------------------------------------------------------------
+    add("suggest-annotate-more-than-frames", [*SUGGEST, "--annotate", "5"], ("--annotate",))
+    add("suggest-out-inside-capture", [*SUGGEST, "--out", "{cap}/suggest"], ("{cap}",))
+    add("suggest-out-exists", SUGGEST, ("{out}", "--force"), write("{out}/mine.txt", "keep me"))
+    add("suggest-default-out-exists", SUGGEST[:-6] + ["--annotate", "2", "--recipe", "fast", "--device", "cpu"],
+        ("capture-suggest", "--force"), write("{root}/capture-suggest/mine.txt", "keep me"))
+    for name in ("truncated", "zero-byte", "a-folder", "symlink-loop"):
+        add(f"suggest-image-{name}", SUGGEST, ("view_00",), image_breaks[name])
+    for name in ("not-json", "nan-pose", "inf-focal", "duplicate-frame", "missing-image", "no-frames"):
+        expect = {"duplicate-frame": ("view_00", "unique"), "missing-image": ("nowhere",)}.get(name, ("transforms.json",))
+        add(f"suggest-transforms-{name}", SUGGEST, expect, transforms_breaks[name])
+    add("suggest-no-poses", SUGGEST, ("{cap}",), remove(TRANSFORMS))
+    for name in ("python-tag", "nan-lr", "section-scalar", "unknown-section"):
+        add(f"suggest-recipe-{name}", [*SUGGEST, "--recipe", recipe], ("my.yaml",),
+            write(recipe, recipe_breaks[name].replace("{root}", "ROOT")))
+    add("suggest-set-nan", [*SUGGEST, "--set", "geometry.lr=.nan"], ("geometry.lr",))
+    add("suggest-set-unknown", [*SUGGEST, "--set", "geometry.nope=1"], ("nope",))
+
+    # --- selftrain beyond the generic cases -----------------------------------------------------------
+    add("selftrain-out-inside-capture", [*SELFTRAIN, "--out", "{cap}/rounds"], ("{cap}",))
+    add("selftrain-out-not-selftrain", SELFTRAIN, ("{out}", "--force"), write("{out}/mine.txt", "keep me"))
+    add("selftrain-state-not-json", SELFTRAIN, ("selftrain.json",), write("{out}/selftrain.json", "{"))
+    add("selftrain-state-a-list", SELFTRAIN, ("selftrain.json",), write("{out}/selftrain.json", "[]"))
+    add("selftrain-state-non-utf8", SELFTRAIN, ("selftrain.json",), write("{out}/selftrain.json", b"\xff\xfe"))
+    add("selftrain-other-settings", SELFTRAIN, ("{out}", "other settings"),
+        write("{out}/selftrain.json", json.dumps({"settings": {"captures": ["elsewhere"]}, "rounds": []})))
+    add("selftrain-holdout-trained", [*SELFTRAIN, "--holdout", "{cap}"], ("{cap}", "--holdout"))
+    add("selftrain-holdout-no-annotations", [*SELFTRAIN, "--holdout", "{root}/small"], ("annotations",),
+        both(lambda w: _small_capture(w), lambda w: __import__("shutil").rmtree(w.root / "small" / "annotations")))
+    add("selftrain-both-without-annotations", [*SELFTRAIN, "--labels", "both"], ("annotations",),
+        lambda w: __import__("shutil").rmtree(w.cap / "annotations"))
+    add("selftrain-capture-twice", [*SELFTRAIN[:2], "{cap}", *SELFTRAIN[2:]], ("{cap}",))
+    add("selftrain-also-labels-truncated", [*SELFTRAIN, "--also", "{h5}"], ("labels.h5",), truncate("{h5}"))
+    add("selftrain-also-other-classes", [*SELFTRAIN, "--also", "{h5}"], ("--also", "class table"),
+        h5_edit(lambda f: f.attrs.__setitem__("classes_json", json.dumps({"classes": [
+            {"id": 0, "name": "background", "color": [0, 0, 0]}, {"id": 1, "name": "ulcer", "color": [200, 0, 0]}]}))))
+    add("selftrain-model-two-channels", SELFTRAIN, ("model.onnx",), lambda w: _export_model(w.model, channels=2))
+    add("selftrain-image-truncated", SELFTRAIN, ("view_00",), truncate(IMG0))
+    add("selftrain-transforms-nan", SELFTRAIN, ("transforms.json",), transforms_breaks["nan-pose"])
+    add("selftrain-recipe-python-tag", [*SELFTRAIN, "--recipe", recipe], ("my.yaml",),
+        write(recipe, recipe_breaks["python-tag"].replace("{root}", "ROOT")))
+    add("selftrain-set-nan", [*SELFTRAIN, "--set", "geometry.lr=.nan"], ("geometry.lr",))
+
+    # --- export beyond the generic cases --------------------------------------------------------------
+    for name in ("field-a-folder", "run-not-json", "run-a-list", "run-no-capture", "no-labels", "partial-only"):
+        add(f"export-{name}", EXPORT, run_breaks[name][1], run_breaks[name][0])
+    for name in ("truncated", "zero-byte", "text", "a-pickle", "no-masks", "no-frame-names", "duplicate-frame",
+                 "bad-classes-json", "other-format", "newer-version"):
+        add(f"export-labels-{name}", EXPORT, ("labels.h5",), h5_breaks[name])
+    for name in ("nan-confidence", "unknown-id"):  # met while exporting (frames are read one at a time)
+        add(f"export-labels-{name}", EXPORT, ("labels.h5",), h5_breaks[name], keep=("export",))
+    add("export-report-not-json", [*EXPORT, "--frames", "flagged"], ("--frames flagged", "report"),
+        write("{run}/report.json", "{"))
+    add("export-flagged-without-report", [*EXPORT, "--frames", "flagged"], ("report",))
+    add("export-cvat-not-zip", ["export", "{run}", "--format", "cvat", "--to", "{root}/x.tar"], ("x.tar", ".zip"))
+    add("export-cvat-zip-exists", ["export", "{run}", "--format", "cvat", "--to", "{root}/x.zip"], ("x.zip", "--force"),
+        write("{root}/x.zip", b"PK"))
+    add("export-cvat-to-folder", ["export", "{run}", "--format", "cvat", "--to", "{root}/x.zip", "--force"],
+        ("x.zip", "folder"), lambda w: (w.root / "x.zip").mkdir())
+    add("export-into-the-run", [*EXPORT[:-1], "{run}/coco"], ("{run}",))
+    add("export-into-the-capture", [*EXPORT[:-1], "{cap}/annotations/coco"], ("{cap}",))
+    add("export-replaces-the-run", [*EXPORT[:-1], "{run}", "--force"], ("{run}",))
+    add("export-exists", EXPORT, ("{out}", "--force"), write("{out}/mine.txt", "keep me"))
+    add("export-min-confidence-over-1", [*EXPORT, "--min-confidence", "1.5"], ("--min-confidence",))
+    add("export-disk-full", EXPORT, ("{out}.partial", "No space left"), patch=disk_full_after(200), keep=("export",))
+    add("export-cvat-disk-full", ["export", "{run}", "--format", "cvat", "--to", "{root}/x.zip"], ("x.zip", "No space left"),
+        patch=disk_full_after(200), keep=("export",))
 
     # --- full disk and no permission: the failure comes while writing, the partial output goes -------
     add("synth-disk-full", ["synth", "{out}", "--frames", "4", "--annotated", "2", "--width", "32", "--height", "32"],

@@ -51,6 +51,7 @@ HEAVY = {
     "augment": ("labelsynth.novel.views", "RealFrames"),
     "report": ("labelsynth.pipeline", "_report"),
     "batch": ("labelsynth.batch.run", "_connect"),
+    "export": ("labelsynth.export.formats", "export_frames"),
 }
 
 

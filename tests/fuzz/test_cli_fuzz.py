@@ -54,6 +54,8 @@ VALID = {  # (argv, the long work it must reach)
     "import-video": (SPECS["import"].base, "import-video"),
     "import-photos": (files.IMPORT_PHOTOS, "import-photos"),
     "expand": (SPECS["expand"].base, "expand"),
+    "expand-geometry": (files.EXPAND_GEOMETRY, "expand"),
+    "suggest": (SPECS["suggest"].base, "geometry"),
     "batch": (SPECS["batch"].base, "batch"),
     "batch-list": (files.BATCH, "batch"),
     "report": (SPECS["report"].base, "report"),
@@ -62,6 +64,8 @@ VALID = {  # (argv, the long work it must reach)
     "train": (SPECS["train"].base, "train"),
     "train-resume": (files.RESUME, "train"),
     "augment": (SPECS["augment"].base, "augment"),
+    "export": (SPECS["export"].base, "export"),
+    "selftrain": (SPECS["selftrain"].base, "segment"),
     "bench": (SPECS["bench"].base, "bench"),
 }
 

@@ -55,6 +55,7 @@ def _finished_run(capture: Path, out: Path) -> None:
     """A finished expand OUT around an untrained field (what report and augment read)."""
     from labelsynth.capture import load_capture
     from labelsynth.export import LabelsWriter, write_masks_png
+    from labelsynth.geometry.fingerprint import GeometryFingerprint
     from labelsynth.geometry.sampling import OccupancyGrid
     from labelsynth.geometry.sdf import SDFField
     from labelsynth.recipe import load_recipe
@@ -65,7 +66,8 @@ def _finished_run(capture: Path, out: Path) -> None:
     recipe = load_recipe("fast", TINY_FIELD)
     torch.manual_seed(0)
     field = FittedField(SDFField(recipe.geometry.sdf), OccupancyGrid(recipe.geometry.occupancy_resolution),
-                        cap.classes, cap.normalization, recipe)
+                        cap.classes, cap.normalization, recipe,
+                        fitted_on=GeometryFingerprint.of(cap, recipe.geometry, 0))  # what expand --geometry checks
     field = field.with_head(field.new_head())
     run = RunFolder(out)
     out.mkdir(parents=True)

@@ -29,7 +29,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from ...classes import IGNORE_ID, ClassMap
-from ...outdir import atomic_file, building
+from ...errors import LabelsynthError
+from ...outdir import atomic_file, building, check_writable
 from ...progress import track
 from ..dataset import ExportError
 from .cityscapes import CityscapesWriter
@@ -153,6 +154,10 @@ def _check_target(to: Path, fmt: str, force: bool, keep_out_of: dict[str, tuple[
     ``keep_out_of`` (the run itself: ``--force`` would delete it; the capture: never written)."""
     if fmt == "cvat" and to.suffix.lower() != ".zip":
         raise ExportError(f"{to}: a cvat export is a .zip file (e.g. --to {to.with_suffix('.zip').name})")
+    try:  # a link (looping, dangling), a file in the way, a read-only disk: refused now, not mid-export
+        check_writable(to)
+    except LabelsynthError as exc:
+        raise ExportError(str(exc)) from None
     if to.exists():
         if fmt == "cvat" and to.is_dir():
             raise ExportError(f"{to}: exists and is a folder (a cvat export is a .zip file)")
@@ -210,7 +215,7 @@ def export_run(
 
         def stream():
             for name in chosen:
-                image, mask, confidence = reader.read(index[name])
+                image, mask, confidence = reader.read_checked(index[name])  # a foreign file's ids and confidences
                 yield ExportFrame(name, mask, image, confidence, bool(reader.annotated[index[name]]))
 
         return export_frames(stream(), reader.classes, to, fmt=fmt, flagged=list(flagged or []),
