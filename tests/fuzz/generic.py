@@ -60,6 +60,7 @@ SPECS: dict[str, Spec] = {
                        "--batch-size", "1", "--crop", "32", "--recipe", "fast", "--device", "cpu"],
                       {"captures": "dir", "model": "file", "out": "out", "holdout": "dir", "also": "file-or-dir"}),
     "export": Spec(["export", "{run}", "--format", "coco", "--to", "{out}"], {"out": "dir", "to": "out"}),
+    "relabel": Spec(["relabel", "{run}", "--device", "cpu", "--no-report"], {"out": "dir", "capture": "dir"}),
     "augment": Spec(["augment", "{run}", "--views", "1", "--device", "cpu"], {"out": "dir", "capture": "dir"}),
     "bench": Spec(["bench", "{cap}", "--truth", "{truth}", "--out", "{out}", "--recipe", "fast", "--device", "cpu"],
                   {"capture": "dir", "truth": "dir", "out": "out", "mesh": "file"}),
