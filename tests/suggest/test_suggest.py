@@ -101,9 +101,9 @@ BAD = [
     (["--annotate", "7"], "--annotate must be a whole number in 1..6, not 7"),
     (["--annotate", "5"], "--annotate 5: {capture} has only 4 frames"),
     (["--annotate", "2", "--out", "{capture}/suggest"], "--out {capture}/suggest: inside the capture {capture}"),
-    (["--annotate", "2", "--seed", "-1"], "--seed must be a whole number >= 0, not -1"),
+    (["--annotate", "2", "--seed", "-1"], "--seed must be a whole number in 0..4294967295, not -1"),
     (["--annotate", "2", "--device", "tpu"], "--device must be one of auto, cpu, cuda, not 'tpu'"),
-    (["--annotate", "2", "--recipe", "nope"], "unknown recipe 'nope'"),
+    (["--annotate", "2", "--recipe", "nope"], "--recipe 'nope': unknown recipe"),
     (["--annotate", "2", "--set", "geometry.iterations=-5"], "fast.yaml.geometry.iterations: -5 is not >= 1"),
     (["--annotate", "2", "--out", "{full}"], "{full}: output folder exists and is not empty"),
 ]
