@@ -33,7 +33,7 @@ from .recipe import Recipe
 from .render.field import FittedField
 from .render.renderer import FieldRenderer
 from .render.support import SurfaceSupport
-from .rundir import RunFolder, RunInfo, changed_label_inputs, geometry_inputs, label_inputs, load_field
+from .rundir import RunFolder, RunInfo, changed_label_inputs, label_inputs, load_field
 from .semantics.fit import HeadFit, fit_head, leave_one_out_heads, scaled_config
 from .semantics.head import SemanticHead
 from .semantics.training import BakedRays, LabelledFrame, bake_semantic_rays
@@ -376,7 +376,7 @@ def expand(
                 console.print(f"[bold]labelsynth[/] geometry from {source} (fitted on these images and cameras, "
                               f"with this geometry recipe and seed: stage 1 skipped)")
         t0 = time.time()
-        inputs = {"geometry_inputs": geometry_inputs(capture), "label_inputs": label_inputs(capture)}
+        inputs = {"label_inputs": label_inputs(capture)}  # what the images were is field.pt's fitted_on
         fingerprints = time.time() - t0
         fit = fit_field(capture, rec, mode, dev, seed=opts.seed, progress=progress, geometry=reused)
         stats = fit.stats
@@ -547,8 +547,8 @@ def relabel(
     render, report, and replace OUT with the result (``labelsynth relabel``).
 
     The geometry in OUT/field.pt is reused as it is, so the capture's images and cameras must be
-    those it was fitted on (run.json's ``geometry_inputs``; anything else is a one-line
-    ``GeometryInputsChanged``). ``capture``: the capture folder when it moved (default: the one
+    those it was fitted on (field.pt's ``fitted_on``, ``geometry.fingerprint``; anything else is
+    a one-line ``GeometryChanged``). ``capture``: the capture folder when it moved (default: the one
     run.json names). ``labels``: which masks teach (default: the run's). The head is trained with
     the run's seed and recipe, so a relabel of an unchanged capture writes the masks the expand
     wrote. The new OUT is built in OUT.partial and swapped in when whole (``outdir.building``): the
@@ -565,8 +565,9 @@ def relabel(
     info, cap = run.open_capture(capture)  # with the run's choice of annotated frames
     mode = resolve_label_mode(cap, choice if choice is not None else info.labels)
     dev = pick_device(dev_choice.value)
-    run.check_geometry_inputs(info, cap)
     fitted = run.load_field(dev)
+    require_unchanged(fitted.fitted_on, cap, where=run.field_path,
+                      remedy="relabel reuses that geometry: run expand again")
     check = check_capture(cap, labels="both" if report else mode.value,
                           class_tables={str(run.field_path): fitted.classes})
     check.raise_if_problems()
@@ -591,7 +592,7 @@ def relabel(
         new.write_run(RunInfo(
             capture=str(cap.root.resolve()), labels=mode.value, annotated_frames=info.annotated_frames,
             recipe=info.recipe, device=str(dev), seed=info.seed, seconds=seconds, geometry=info.geometry,
-            semantic=vars(fit.stats), report_seconds=report_seconds, geometry_inputs=info.geometry_inputs,
+            semantic=vars(fit.stats), report_seconds=report_seconds,
             label_inputs=now, relabel=changes,
         ))
     return RelabelResult(run.path, cap.names, mode, changes["masks_changed"], changes["pixels_changed"], seconds,

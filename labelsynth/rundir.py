@@ -33,7 +33,6 @@ import numpy as np
 import torch
 
 from . import __version__
-from .cameras import Camera
 from .capture.load import load_capture
 from .capture.model import Capture, SceneNormalization
 from .classes import ClassMap
@@ -94,10 +93,6 @@ class RunInfo:
     geometry_from: str | None = None
     """The geometry file (field.pt, absolute) whose geometry this run reused instead of fitting
     stage 1 (``expand --geometry``); None: fitted in this run."""
-    geometry_inputs: dict[str, dict[str, str]] | None = None
-    """What the geometry in field.pt was fitted on (``geometry_inputs``): per frame, the SHA-256
-    of its image file and of its camera. ``relabel`` refuses a capture that differs. None: a run
-    from before it was recorded."""
     label_inputs: dict[str, dict[str, str]] | None = None
     """The masks the run read (``label_inputs``): per kind (annotations, predictions) and frame,
     the SHA-256 of the decoded class ids. The next ``relabel`` lists what changed since."""
@@ -116,7 +111,7 @@ class RunInfo:
         data = {"version": self.version, "capture": self.capture, "labels": self.labels,
                 "annotated_frames": self.annotated_frames, "recipe": self.recipe, "device": self.device,
                 "seed": self.seed, "seconds": self.seconds, "geometry": self.geometry, "semantic": self.semantic}
-        for key in ("report_seconds", "geometry_from", "geometry_inputs", "label_inputs", "relabel"):
+        for key in ("report_seconds", "geometry_from", "label_inputs", "relabel"):
             if getattr(self, key) is not None:
                 data[key] = getattr(self, key)
         return data
@@ -143,15 +138,16 @@ class RunInfo:
             raise RunFolderError(f"{bad} ('seconds' is not a mapping of numbers)")
         if not isinstance(data.get("geometry_from", ""), str):
             raise RunFolderError(f"{bad} ('geometry_from' is not a path)")
+        # (a run.json of an earlier version may also hold "geometry_inputs": what the images and
+        # cameras were is field.pt's fitted_on now, so it is not read)
         kept = {k: data[k] for k in ("recipe", "device", "geometry", "semantic", "report_seconds", "geometry_from",
-                                     "geometry_inputs", "label_inputs", "relabel", "version") if k in data}
-        for key in ("recipe", "geometry", "semantic", "geometry_inputs", "label_inputs", "relabel"):
+                                     "label_inputs", "relabel", "version") if k in data}
+        for key in ("recipe", "geometry", "semantic", "label_inputs", "relabel"):
             if not isinstance(kept.get(key) or {}, dict):
                 raise RunFolderError(f"{bad} ('{key}' is not a mapping)")
-        for key in ("geometry_inputs", "label_inputs"):
-            if not all(isinstance(v, dict) and all(isinstance(h, str) for h in v.values())
-                       for v in (kept.get(key) or {}).values()):
-                raise RunFolderError(f"{bad} ('{key}' is not a mapping of frame names to digests)")
+        if not all(isinstance(v, dict) and all(isinstance(h, str) for h in v.values())
+                   for v in (kept.get("label_inputs") or {}).values()):
+            raise RunFolderError(f"{bad} ('label_inputs' is not a mapping of frame names to digests)")
         return cls(capture=data["capture"], labels=data["labels"], annotated_frames=frames, seed=seed,
                    seconds={k: float(v) for k, v in seconds.items()}, **kept)
 
@@ -284,21 +280,10 @@ def _build_field(meta: dict, tensors: dict[str, torch.Tensor], path: Path, devic
 
 
 # ------------------------------------------------------------------------------------------
-# what a run read: run.json's geometry_inputs and label_inputs
+# what a run read: run.json's label_inputs (the images and cameras: field.pt's fitted_on)
 # ------------------------------------------------------------------------------------------
-class GeometryInputsChanged(RunFolderError):
-    """The capture's images or cameras are not those the geometry in field.pt was fitted on."""
-
-
 def _sha256(data: bytes) -> str:
     return hashlib.sha256(data).hexdigest()
-
-
-def camera_digest(camera: Camera) -> str:
-    """SHA-256 of a camera as the geometry used it: size, intrinsics, distortion, pose."""
-    numbers = np.array([camera.width, camera.height, camera.fx, camera.fy, camera.cx, camera.cy,
-                        camera.k1, camera.k2, camera.p1, camera.p2, *camera.c2w.ravel()], dtype=np.float64)
-    return _sha256(numbers.tobytes())
 
 
 def mask_digest(mask: np.ndarray) -> str:
@@ -306,17 +291,6 @@ def mask_digest(mask: np.ndarray) -> str:
     flavour or moved into a CVAT zip is the same mask."""
     mask = np.ascontiguousarray(mask, dtype=np.uint8)
     return _sha256(np.array(mask.shape, dtype=np.int64).tobytes() + mask.tobytes())
-
-
-def geometry_inputs(capture: Capture) -> dict[str, dict[str, str]]:
-    """What a geometry is fitted on, per frame: the SHA-256 of its image file's bytes
-    (``images``) and of its camera (``cameras``). Reads every image file once (~30 MB for 50
-    frames at 640x480: a fraction of a second)."""
-    images, cameras = {}, {}
-    for f in capture.frames:
-        images[f.name] = _sha256(Path(f.image_path).read_bytes())
-        cameras[f.name] = camera_digest(f.camera)
-    return {"images": images, "cameras": cameras}
 
 
 def label_inputs(capture: Capture) -> dict[str, dict[str, str]]:
@@ -463,29 +437,6 @@ class RunFolder:
         if fitted.normalization.to_json() != capture.normalization.to_json():
             raise RunFolderError(f"{capture.root}: its cameras are not those the field was fitted to ({self.field_path})")
 
-    def check_geometry_inputs(self, info: RunInfo, capture: Capture) -> None:
-        """``capture``'s images and cameras are those the geometry in field.pt was fitted on
-        (run.json's ``geometry_inputs``), frame for frame; otherwise one ``GeometryInputsChanged``
-        line naming the first frame that differs and how many do. Reads every image file."""
-        recorded = info.geometry_inputs
-        if not recorded or not isinstance(recorded.get("images"), dict) or not isinstance(recorded.get("cameras"), dict):
-            raise GeometryInputsChanged(f"{self.run_path}: records no fingerprint of the images and cameras its "
-                                        "geometry was fitted on (written by an older labelsynth): run expand again")
-        now = geometry_inputs(capture)
-        if set(now["images"]) != set(recorded["images"]):
-            added = sorted(set(now["images"]) - set(recorded["images"]))
-            gone = sorted(set(recorded["images"]) - set(now["images"]))
-            what = (f"frame {added[0]} was added" if added else f"frame {gone[0]} is gone")
-            raise GeometryInputsChanged(f"{capture.root}: not the frames the geometry in {self.field_path} was fitted "
-                                        f"on ({what}; {len(added)} added, {len(gone)} gone): run expand again")
-        for part, what in (("images", "image"), ("cameras", "camera")):
-            differ = [n for n in capture.names if now[part][n] != recorded[part][n]]
-            if differ:
-                path = capture.frame(differ[0]).image_path if part == "images" else capture.root
-                raise GeometryInputsChanged(
-                    f"{path}: the {what} of frame {differ[0]} changed since the geometry in {self.field_path} was "
-                    f"fitted ({len(differ)} frame(s) differ); relabel reuses that geometry: run expand again")
-
     def read_masks(self, names: list[str], capture: Capture | None = None) -> dict[str, np.ndarray]:
         """masks/<name>.png of every named frame, as expand wrote them; with ``capture``, each is
         checked to have its frame's size and only the capture's class ids (one line naming it)."""
@@ -521,6 +472,6 @@ class RunFolder:
 
 __all__ = [
     "FIELD_FILE", "FIELD_FORMAT", "FIELD_VERSION", "LABELS_FILE", "MASKS_DIR", "MESH_STEM", "REPORT_HTML",
-    "REPORT_JSON", "RUN_FILE", "GeometryInputsChanged", "RunFolder", "RunFolderError", "RunInfo", "camera_digest",
-    "changed_label_inputs", "geometry_inputs", "label_inputs", "load_field", "mask_digest", "save_field",
+    "REPORT_JSON", "RUN_FILE", "RunFolder", "RunFolderError", "RunInfo",
+    "changed_label_inputs", "label_inputs", "load_field", "mask_digest", "save_field",
 ]

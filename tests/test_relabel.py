@@ -25,7 +25,8 @@ from typer.testing import CliRunner
 from labelsynth import pipeline
 from labelsynth.cli import app
 from labelsynth.export import LabelsReader
-from labelsynth.rundir import GeometryInputsChanged, RunFolder
+from labelsynth.geometry.fingerprint import GeometryChanged
+from labelsynth.rundir import RunFolder
 
 pytestmark = pytest.mark.xdist_group("tiny_expanded")
 
@@ -63,7 +64,7 @@ def test_relabel_of_an_unchanged_capture_writes_the_masks_expand_wrote(tiny_expa
     assert again.relabel["masks_changed"] == [] and result.masks_changed == []
     assert set(again.relabel["pixels_changed"].values()) == {0}
     assert again.relabel["relabels"] == 1
-    assert again.geometry_inputs == info.geometry_inputs and again.label_inputs == info.label_inputs
+    assert again.label_inputs == info.label_inputs
     assert again.seed == info.seed and again.recipe == info.recipe and again.geometry == info.geometry
     assert set(again.seconds) == {"check", "semantics", "render"}
     assert not (tmp_path / "out.partial").exists() and not (tmp_path / "out.previous").exists()
@@ -124,24 +125,25 @@ def test_relabel_refuses_a_capture_whose_geometry_inputs_changed(tiny_expanded, 
         img = cv2.imread(str(path))
         img[10:20, 10:20] = 255 - img[10:20, 10:20]
         cv2.imwrite(str(path), img)
-        message = f"the image of frame {name} changed since the geometry"
+        message = f"images changed since the geometry in {out / 'field.pt'} was fitted (images: {name} differs)"
     elif change == "camera":
         tf = json.loads((cap / "transforms.json").read_text())
         frame = next(f for f in tf["frames"] if Path(f["file_path"]).stem == name)
         frame["transform_matrix"][0][3] += 0.01
         (cap / "transforms.json").write_text(json.dumps(tf))
-        message = f"the camera of frame {name} changed since the geometry"
+        message = f"(cameras: {name} differs"
     else:
         shutil.copy(cap / "images" / f"{name}.png", cap / "images" / "zz_extra.png")
         tf = json.loads((cap / "transforms.json").read_text())
         tf["frames"].append({**tf["frames"][0], "file_path": "images/zz_extra.png"})
         (cap / "transforms.json").write_text(json.dumps(tf))
-        message = "not the frames the geometry"
+        message = "1 frame added (zz_extra)"
     before = files(out)
     res = CliRunner().invoke(app, ["relabel", str(out), "--capture", str(cap), "--device", "cpu"])
     assert res.exit_code == 2
     lines = res.output.strip().splitlines()
     assert len(lines) == 1 and message in lines[0] and "run expand again" in lines[0], res.output
+    assert f"changed since the geometry in {out / 'field.pt'} was fitted" in lines[0], res.output
     assert files(out) == before
     assert sorted(p.name for p in tmp_path.iterdir()) == ["capture", "out"]
 
@@ -160,12 +162,16 @@ def test_relabel_refuses_bad_options_and_folders_in_one_line(tiny_expanded, tmp_
         res = CliRunner().invoke(app, args)
         assert res.exit_code == 2 and len(res.output.strip().splitlines()) == 1, res.output
         assert message in res.output, res.output
-    # a run.json from before geometry_inputs were recorded: refused, not guessed
-    run = RunFolder(out)
-    info = run.read_run()
-    info.geometry_inputs = None
-    run.write_run(info)
-    with pytest.raises(GeometryInputsChanged, match="records no fingerprint"):
+    # a field.pt from before fingerprints were recorded: refused, not guessed
+    import torch
+
+    stored = torch.load(out / "field.pt", weights_only=True)
+    meta = json.loads(stored["labelsynth_field"])
+    assert meta.pop("fitted_on")
+    stored["labelsynth_field"] = json.dumps(meta)
+    torch.save(stored, out / "field.pt")
+    with pytest.raises(GeometryChanged, match="field.pt: holds no record of what its geometry was fitted on .*"
+                                              "relabel reuses that geometry: run expand again"):
         pipeline.relabel(out, capture=cap, device="cpu", progress=False)
 
 

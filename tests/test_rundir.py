@@ -121,14 +121,17 @@ def test_a_field_fits_only_the_capture_it_was_fitted_to(tmp_path):
 
 
 def test_what_a_run_read_is_recorded_and_compared(tmp_path):
-    """geometry_inputs (image files and cameras), label_inputs (decoded masks) and what changed."""
+    """label_inputs (decoded masks) and what changed; an older run.json's geometry_inputs are
+    ignored (the images and cameras a geometry was fitted on are field.pt's ``fitted_on``)."""
     import shutil
 
     import cv2
     import numpy as np
 
     from labelsynth.capture import load_capture
-    from labelsynth.rundir import GeometryInputsChanged, changed_label_inputs, geometry_inputs, label_inputs
+    from labelsynth.geometry.config import GeometryConfig
+    from labelsynth.geometry.fingerprint import GeometryChanged, GeometryFingerprint, require_unchanged
+    from labelsynth.rundir import changed_label_inputs, label_inputs
 
     from .capture.test_capture_support import capture_with_annotations
 
@@ -139,15 +142,20 @@ def test_what_a_run_read_is_recorded_and_compared(tmp_path):
     mask[2:6, 2:9] = 1
     cv2.imwrite(str(cap_dir / "annotations" / f"{name}.png"), mask)
     cap = load_capture(cap_dir)
-    info = RunInfo(capture=str(cap_dir), labels="annotations", geometry_inputs=geometry_inputs(cap),
-                   label_inputs=label_inputs(cap))
+    info = RunInfo(capture=str(cap_dir), labels="annotations", label_inputs=label_inputs(cap))
     run = RunFolder(tmp_path / "out")
     run.path.mkdir()
     run.write_run(info)
     back = run.read_run()
-    assert back == info and set(back.geometry_inputs) == {"images", "cameras"}
+    assert back == info
     assert back.label_inputs == {"annotations": {name: back.label_inputs["annotations"][name]}, "predictions": {}}
-    run.check_geometry_inputs(back, cap)  # the same capture fits
+    # a run.json of an earlier version with geometry_inputs: read, the key ignored
+    data = json.loads(run.run_path.read_text())
+    data["geometry_inputs"] = {"images": {name: "0" * 64}, "cameras": {name: "0" * 64}}
+    run.run_path.write_text(json.dumps(data))
+    assert run.read_run() == info and "geometry_inputs" not in info.to_json()
+    fitted_on = GeometryFingerprint.of(cap, GeometryConfig(), 0)
+    require_unchanged(fitted_on, cap, where="field.pt")  # the same capture fits
     # the same ids saved as a palette PNG: the same mask; another id: changed; a new mask: added
     from PIL import Image
 
@@ -165,8 +173,9 @@ def test_what_a_run_read_is_recorded_and_compared(tmp_path):
     # a changed image is refused in one line naming the frame
     img = cap_dir / "images" / f"{cap.frames[2].name}.png"
     shutil.copy(cap_dir / "images" / f"{cap.frames[3].name}.png", img)
-    with pytest.raises(GeometryInputsChanged, match=rf"the image of frame {cap.frames[2].name} changed") as err:
-        run.check_geometry_inputs(back, load_capture(cap_dir))
+    with pytest.raises(GeometryChanged, match=rf"images changed since .* \(images: {cap.frames[2].name} differs\)"
+                       ) as err:
+        require_unchanged(fitted_on, load_capture(cap_dir), where="field.pt")
     assert "\n" not in str(err.value)
 
 

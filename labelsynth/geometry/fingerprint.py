@@ -28,6 +28,9 @@ from .. import __version__
 from ..errors import LabelsynthError
 from .config import GeometryConfig
 
+DEFAULT_REMEDY = "fit it again (without --geometry) or use the capture, recipe and seed it was fitted with"
+"""What ``require_unchanged``'s refusal tells the user to do, unless the caller says otherwise."""
+
 PARTS = ("images", "cameras", "geometry recipe", "seed")
 """What a fingerprint compares, in the order a mismatch names them."""
 
@@ -122,6 +125,7 @@ def require_unchanged(
     where: str | Path,
     geometry: GeometryConfig | None = None,
     seed: int | None = None,
+    remedy: str | None = None,
 ) -> GeometryFingerprint:
     """Refuse to reuse a geometry on ``capture`` unless it was fitted on these inputs.
 
@@ -133,7 +137,7 @@ def require_unchanged(
     """
     if stored is None:
         raise GeometryChanged(f"{where}: holds no record of what its geometry was fitted on (written by an older "
-                              "labelsynth); fit it again (labelsynth suggest or expand)")
+                              f"labelsynth); {remedy or 'fit it again (labelsynth suggest or expand)'}")
     parts = ["images", "cameras"] + (["geometry recipe"] if geometry is not None else []) \
         + (["seed"] if seed is not None else [])
     current = GeometryFingerprint.of(capture, geometry if geometry is not None else GeometryConfig(),
@@ -143,7 +147,7 @@ def require_unchanged(
         what = " and ".join(changed)
         detail = "; ".join(f"{part}: {text}" for part, text in changed.items())
         raise GeometryChanged(f"{capture.root}: {what} changed since the geometry in {where} was fitted ({detail}); "
-                              "fit it again (without --geometry) or use the capture, recipe and seed it was fitted with")
+                              f"{remedy or DEFAULT_REMEDY}")
     return current
 
 
