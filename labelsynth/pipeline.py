@@ -187,7 +187,7 @@ def reuse_geometry(path: str | Path, capture: Capture, recipe: Recipe, seed: int
     stored = load_field(source, device)
     require_unchanged(stored.fitted_on, capture, where=source, geometry=recipe.geometry, seed=seed)
     return FittedField(stored.sdf, stored.grid, capture.classes, capture.normalization, recipe,
-                       fitted_on=stored.fitted_on)
+                       fitted_on=stored.fitted_on, surface=stored.surface)
 
 
 def fit_semantics(
@@ -277,6 +277,8 @@ def render_outputs(
     classes = capture.classes
     masks: dict[str, np.ndarray] = {}
     recipe_text = yaml.safe_dump(view.field.recipe.to_dict(), sort_keys=False)
+    if not view.config.per_pixel:
+        view.vertex_logits()  # every vertex at once: most are seen, and one pass beats 50 lazy ones
     with LabelsWriter(
         run.labels_path,
         n_frames=len(capture),
@@ -414,9 +416,9 @@ def _write_outputs(run: RunFolder, capture: Capture, fitted: FittedField, baked:
     returns the report's own step seconds (None without a report). ``before``: the masks of the
     OUT being replaced, so ``relabel["pixels_changed"]`` (per frame, pixels whose class moved)
     is filled in here and shown by the report."""
-    run.save_field(fitted)
     view = FieldRenderer(fitted)
     t0 = time.time()
+    run.save_field(view.field_with_surface())
     masks, unseen = render_outputs(view, capture, run, labels=mode, recipe_name=recipe_name, progress=progress)
     seconds["render"] = time.time() - t0
     if before is not None and relabel is not None:

@@ -42,7 +42,7 @@ from .geometry.sampling import OccupancyGrid
 from .geometry.sdf import SDFField
 from .outdir import PARTIAL_SUFFIX, partial_path, previous_path, write_text_atomic
 from .recipe import Recipe
-from .render.field import FittedField
+from .render.field import FittedField, SurfaceMesh
 from .safeload import first_line as _first_line
 from .safeload import load_plain, read_described, save_described
 from .safeload import tensors_under as _part
@@ -182,6 +182,10 @@ def save_field(fitted: FittedField, path: str | Path) -> Path:
     }
     if fitted.fitted_on is not None:
         meta["fitted_on"] = fitted.fitted_on.to_json()
+    if fitted.surface is not None:
+        meta["surface_resolution"] = fitted.surface.resolution
+        for name in ("vertices", "faces", "normals"):
+            tensors[f"surface.{name}"] = torch.from_numpy(np.array(getattr(fitted.surface, name), copy=True))
     return save_described(path, _META_KEY, meta, tensors)
 
 
@@ -236,6 +240,25 @@ def _convert_v1(state: dict, path: Path) -> tuple[dict, dict[str, torch.Tensor]]
     return meta, tensors
 
 
+def _surface(meta: dict, tensors: dict[str, torch.Tensor], path: Path) -> SurfaceMesh | None:
+    """The stored surface (``FittedField.surface``), checked; None in files without one."""
+    if "surface_resolution" not in meta:
+        return None
+    part = _part(tensors, "surface")
+    resolution = meta["surface_resolution"]
+    try:
+        verts, faces, normals = (part[k].cpu().numpy() for k in ("vertices", "faces", "normals"))
+        ok = (not isinstance(resolution, bool) and isinstance(resolution, int) and resolution > 0
+              and verts.ndim == 2 and verts.shape[1] == 3 and normals.shape == verts.shape
+              and faces.ndim == 2 and faces.shape[1] == 3 and faces.dtype.kind in "iu"
+              and (faces.size == 0 or (faces.min() >= 0 and faces.max() < len(verts))))
+    except (KeyError, AttributeError, TypeError):
+        ok = False
+    if not ok:
+        raise RunFolderError(f"{path}: its stored surface is not a mesh of its field; {_RECREATE}")
+    return SurfaceMesh(resolution, verts, faces, normals)
+
+
 def _build_field(meta: dict, tensors: dict[str, torch.Tensor], path: Path, device: torch.device) -> FittedField:
     recipe = Recipe.from_dict(meta.get("recipe"), f"{path}: recipe")
     classes = ClassMap.from_dict(meta.get("classes"), str(path), "class table of the field")
@@ -255,8 +278,10 @@ def _build_field(meta: dict, tensors: dict[str, torch.Tensor], path: Path, devic
         fitted_on = GeometryFingerprint.from_json(meta["fitted_on"], str(path)) if "fitted_on" in meta else None
     except GeometryChanged as exc:
         raise RunFolderError(f"{exc}; {_RECREATE}") from None
+    surface = _surface(meta, tensors, path)
     sdf = SDFField(recipe.geometry.sdf).to(device)
-    fitted = FittedField(sdf, OccupancyGrid(resolution, device), classes, normalization, recipe, fitted_on=fitted_on)
+    fitted = FittedField(sdf, OccupancyGrid(resolution, device), classes, normalization, recipe, fitted_on=fitted_on,
+                         surface=surface)
     head = fitted.new_head() if meta.get("has_head") else None
     try:
         sdf.load_state_dict(_part(tensors, "sdf"))

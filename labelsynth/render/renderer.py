@@ -9,6 +9,7 @@ report's leave-one-out heads), never changing the field.
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass
 
 import numpy as np
@@ -19,7 +20,7 @@ from ..cameras import Camera
 from ..errors import LabelsynthError
 from ..semantics.head import SemanticHead, decide_labels
 from .config import RenderConfig
-from .field import FittedField
+from .field import FittedField, SurfaceMesh
 from .support import SurfaceSupport
 from .surface import SurfaceCaster, extract_mesh
 
@@ -60,9 +61,18 @@ class FieldRenderer:
     def mesh(self) -> trimesh.Trimesh:
         """The surface in unit-cube coordinates (cached)."""
         if self._mesh is None:
-            self._mesh = extract_mesh(self.field.sdf.sdf_batched, self.config.mesh_resolution, self.field.device)
+            stored = self.field.surface
+            if stored is not None and stored.resolution == self.config.mesh_resolution:
+                self._mesh = stored.mesh()
+            else:
+                self._mesh = extract_mesh(self.field.sdf.sdf_batched, self.config.mesh_resolution, self.field.device)
             self._caster = None
         return self._mesh
+
+    def field_with_surface(self) -> FittedField:
+        """The field with the surface this renderer extracted (``FittedField.surface``), for
+        saving: whoever loads it renders without extracting it again."""
+        return dataclasses.replace(self.field, surface=SurfaceMesh.of(self.mesh(), self.config.mesh_resolution))
 
     def caster(self) -> SurfaceCaster:
         if self._caster is None:
@@ -99,6 +109,8 @@ class FieldRenderer:
             logits = torch.zeros(n, self.field.classes.num_classes, device=self.field.device)
             self._vertex_logits = (head, logits, np.zeros(n, dtype=bool))
         _, logits, known = self._vertex_logits
+        if vertices is not None and known.all():
+            return logits
         wanted = np.arange(n) if vertices is None else np.unique(vertices)
         todo = wanted[~known[wanted]]
         if len(todo):

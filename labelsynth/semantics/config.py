@@ -43,6 +43,15 @@ class SemanticConfig:
     max_rays_per_frame: Count = 40000
     max_samples_per_ray: Count = 8
     """The K highest-weight samples of each ray that the head reads (baked once)."""
+    min_sample_weight: UnitInterval = 1e-3
+    """Of those, samples whose rendering weight is below this are dropped when baked (weight 0,
+    the head never evaluated there). On the 50-frame wound they are half of the samples and
+    carry 0.05% of the rendered weight, so the head's steps cost about half (docs/benchmarks.md,
+    "Relabel and export"); 0 keeps every sample."""
+    lookup_cache_mb: NonNegative = 1024.0
+    """Memory (MiB) for the position encoding's grid lookups of every baked sample, computed
+    once instead of at every step (the points never move); more samples than fit are looked up
+    per step as before. Speed and memory only: the results are the same."""
     expert_weight: Positive = 4.0
     """With --labels both: weight of annotated frames against predictions."""
     class_weighting: ClassWeighting = "auto"

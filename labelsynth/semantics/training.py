@@ -5,7 +5,7 @@ from __future__ import annotations
 import math
 import time
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import cv2
 import numpy as np
@@ -16,7 +16,7 @@ from ..cameras import Camera
 from ..device import optimiser_options
 from ..classes import ClassMap
 from ..errors import LabelsynthError
-from ..geometry.encoding import HashGridEncoding
+from ..geometry.encoding import GridLookup, HashGridEncoding
 from ..geometry.sampling import OccupancyGrid, march, neus_weights
 from ..geometry.sdf import SDFField
 from ..geometry.training import _camera_rays, _resize
@@ -53,6 +53,17 @@ class BakedRays:
     frame_names: list[str]
     frame_class_counts: np.ndarray  # (F, C) label pixels per frame and class index
     frame_expert: list[bool]  # per frame: an expert annotation?
+    _lookups: "SampleLookups | None" = field(default=None, repr=False, compare=False)  # ``lookups``
+
+    def lookups(self, encoding: HashGridEncoding | None, budget_bytes: float) -> "SampleLookups | None":
+        """The position encoding's lookup of every sample that carries weight, made once for
+        this encoding's layout (None: no encoding, or more samples than ``budget_bytes`` hold)."""
+        if encoding is None:
+            return None
+        if self._lookups is not None and self._lookups.layout == (encoding.layout, encoding.active_levels):
+            return self._lookups
+        self._lookups = SampleLookups.build(self, encoding, budget_bytes)
+        return self._lookups
 
     @property
     def expert_only(self) -> bool:
@@ -80,6 +91,44 @@ class BakedRays:
         )
 
 
+@dataclass
+class SampleLookups:
+    """``HashGridEncoding.lookup`` of every baked sample that carries weight (table rows as
+    int64, as the gathers want them), and where each (ray, slot) finds its row (-1: a slot of
+    weight 0)."""
+
+    layout: tuple  # (encoding layout, active levels) it was made for
+    row_of_slot: torch.Tensor  # (R * K,) int64
+    idx: torch.Tensor  # (S, L, 8) int64
+    w: torch.Tensor  # (S, L, 8)
+    inside: torch.Tensor  # (S, 3) bool
+
+    @classmethod
+    @torch.no_grad()
+    def build(cls, baked: "BakedRays", encoding: HashGridEncoding, budget_bytes: float) -> "SampleLookups | None":
+        flat = baked.weights.reshape(-1)
+        live = torch.nonzero(flat > 0).squeeze(1)
+        per_sample = encoding.active_levels * 8 * (8 + baked.weights.element_size()) + 3
+        if live.numel() * per_sample + flat.numel() * 8 > budget_bytes:
+            return None
+        row = torch.full((flat.numel(),), -1, dtype=torch.long, device=flat.device)
+        row[live] = torch.arange(live.numel(), device=flat.device)
+        positions = baked.positions.reshape(-1, 3)
+        parts = [encoding.lookup(positions[live[s : s + 65536]]) for s in range(0, live.numel(), 65536)]
+        if not parts:
+            return None
+        return cls((encoding.layout, encoding.active_levels), row,
+                   torch.cat([p.idx for p in parts]), torch.cat([p.w for p in parts]),
+                   torch.cat([p.inside for p in parts]))
+
+    def of(self, slots: torch.Tensor) -> GridLookup:
+        """The lookup of the samples at these (ray * K + slot) positions, all carrying weight."""
+        rows = self.row_of_slot.index_select(0, slots)
+        layout, levels = self.layout
+        return GridLookup(self.idx.index_select(0, rows), self.w.index_select(0, rows),
+                          self.inside.index_select(0, rows), levels, layout)
+
+
 @torch.no_grad()
 def sample_frozen(
     sdf: SDFField,
@@ -89,8 +138,11 @@ def sample_frozen(
     steps: int,
     k: int,
     chunk: int = 8192,
+    min_weight: float = 0.0,
 ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-    """For each ray: its K highest-weight samples (positions, geometry features, weights).
+    """For each ray: its K highest-weight samples (positions, geometry features, weights),
+    highest first; a sample of weight below ``min_weight`` gets weight 0 (``rendered_logits``
+    skips it).
 
     With geometry frozen, the rendering weights of a ray never change, so they are computed
     once; the semantic stage then only evaluates the head (the paper's Eq. 3, cached).
@@ -122,6 +174,8 @@ def sample_frozen(
             pos[r, c] = samples.positions[sel]
             feat[r, c] = feature[sel]
             wk[r, c] = w[sel]
+            if min_weight > 0:
+                wk = torch.where(wk >= min_weight, wk, torch.zeros((), device=device))
         out_pos.append(pos)
         out_feat.append(feat)
         out_w.append(wk)
@@ -161,7 +215,8 @@ def bake_semantic_rays(
             pixels = np.stack([valid % cam.width + 0.5, valid // cam.width + 0.5], -1)
             o, d = _camera_rays(cam, pixels)
             pos, feat, w = sample_frozen(
-                sdf, grid, torch.from_numpy(o).to(device), torch.from_numpy(d).to(device), steps, cfg.max_samples_per_ray
+                sdf, grid, torch.from_numpy(o).to(device), torch.from_numpy(d).to(device), steps, cfg.max_samples_per_ray,
+                min_weight=cfg.min_sample_weight,
             )
             labels = torch.from_numpy(idx[valid]).to(device)
             n = len(valid)
@@ -255,6 +310,7 @@ def train_semantic(
     iterations = semantic_iterations(cfg, len(baked))
     opt, sched = _semantic_optimiser(head.parameters(), cfg, iterations, device)
     bg_idx = classes.background_index
+    lookups = baked.lookups(head.position_encoding, cfg.lookup_cache_mb * 2**20)
     head.train()
     loss_ema = 0.0
     t0 = time.time()
@@ -262,7 +318,8 @@ def train_semantic(
         task = bar.add_task("semantics", total=iterations, status="")
         for it in range(iterations):
             idx = torch.randint(0, len(baked), (batch,), device=device, generator=gen)
-            logits = rendered_logits(head, baked.positions[idx], baked.features[idx], baked.weights[idx], bg_idx)
+            live = LiveSamples.of(baked, idx)
+            logits = rendered_logits(head, live, bg_idx, live.lookup(lookups, head.position_encoding))
             loss = weighted_cross_entropy(logits, baked.labels[idx], class_w, baked.ray_weight[idx])
             opt.zero_grad(set_to_none=True)
             loss.backward()
@@ -316,10 +373,11 @@ def train_leave_one_out(
     gen = torch.Generator(device=device).manual_seed(seed + 1)
     batch = min(cfg.rays_per_batch, len(baked))
     bg_idx = classes.background_index
+    lookups = baked.lookups(next(iter(heads.values())).position_encoding, cfg.lookup_cache_mb * 2**20)
     with make_progress(progress) as bar:
         task = bar.add_task(f"leave-one-view-out: {len(heads)} heads", total=iterations, status="")
         for _ in range(iterations):
-            _joint_step(heads, class_w, left_out, baked, batch, bg_idx, gen, opt)
+            _joint_step(heads, class_w, left_out, baked, batch, bg_idx, gen, opt, lookups)
             sched.step()
             bar.update(task, advance=1)
     for head in heads.values():
@@ -328,32 +386,62 @@ def train_leave_one_out(
 
 
 def _joint_step(heads: dict, class_w: list, left_out: list, baked: BakedRays, batch: int, bg_idx: int,
-                gen: torch.Generator, opt: torch.optim.Optimizer) -> None:
+                gen: torch.Generator, opt: torch.optim.Optimizer, lookups: SampleLookups | None) -> None:
     """One step of ``train_leave_one_out``: one batch, one position lookup, every head's loss."""
     first = next(iter(heads.values()))
     idx = torch.randint(0, len(baked), (batch,), device=baked.positions.device, generator=gen)
-    pos, feat, w = baked.positions[idx], baked.features[idx], baked.weights[idx]
+    live = LiveSamples.of(baked, idx)
     labels, ray_w, frames = baked.labels[idx], baked.ray_weight[idx], baked.frame_of_ray[idx]
-    lookup = first.position_encoding.lookup(pos.reshape(-1, 3)) if first.position_encoding is not None else None
+    lookup = live.lookup(lookups, first.position_encoding)
     loss = 0.0
     for head, cw, j in zip(heads.values(), class_w, left_out):
-        logits = rendered_logits(head, pos, feat, w, bg_idx, lookup)
+        logits = rendered_logits(head, live, bg_idx, lookup)
         loss = loss + weighted_cross_entropy(logits, labels, cw, ray_w * (frames != j))
     opt.zero_grad(set_to_none=True)
     loss.backward()
     opt.step()
 
 
-def rendered_logits(
-    head: SemanticHead, positions: torch.Tensor, features: torch.Tensor, weights: torch.Tensor, background_index: int,
-    lookup=None,
-) -> torch.Tensor:
-    """Volume-rendered logits of K cached samples per ray; the unabsorbed rest is background.
-    ``lookup``: the position encoding's lookup of ``positions`` (R*K points), when shared."""
-    r, k, _ = positions.shape
-    per_sample = head(features.reshape(r * k, -1), positions.reshape(r * k, 3), lookup).reshape(r, k, -1)
-    logits = (weights[..., None] * per_sample).sum(1)
-    rest = (1.0 - weights.sum(1)).clamp(0.0, 1.0)
-    bg = torch.zeros(per_sample.shape[-1], device=positions.device)
+@dataclass
+class LiveSamples:
+    """The samples of a batch of rays that carry weight, flattened: the head is evaluated only
+    there (a ray's dropped or padded slots have weight 0 and would add nothing)."""
+
+    rays: int
+    slots: torch.Tensor  # (M,) ray * K + slot, rays numbered as in BakedRays
+    ray: torch.Tensor  # (M,) which ray of the batch
+    positions: torch.Tensor  # (M, 3)
+    features: torch.Tensor  # (M, F)
+    weights: torch.Tensor  # (M,)
+    rest: torch.Tensor  # (rays,) the part of each ray no sample absorbs
+
+    @classmethod
+    def of(cls, baked: BakedRays, rays: torch.Tensor) -> "LiveSamples":
+        """The samples of ``baked``'s rays ``rays`` (a batch), weight 0 marking a slot without one."""
+        positions, features, weights = baked.positions[rays], baked.features[rays], baked.weights[rays]
+        r, k, _ = positions.shape
+        flat = weights.reshape(-1)
+        live = torch.nonzero(flat > 0).squeeze(1)
+        ray = torch.div(live, k, rounding_mode="floor")
+        return cls(r, rays.index_select(0, ray) * k + (live - ray * k), ray,
+                   positions.reshape(r * k, 3).index_select(0, live), features.reshape(r * k, -1).index_select(0, live),
+                   flat.index_select(0, live), (1.0 - weights.sum(1)).clamp(0.0, 1.0))
+
+    def lookup(self, lookups: SampleLookups | None, encoding: HashGridEncoding | None) -> GridLookup | None:
+        """The position encoding's lookup of these samples: from ``lookups`` when made, else now."""
+        if encoding is None:
+            return None
+        return lookups.of(self.slots) if lookups is not None else encoding.lookup(self.positions)
+
+
+def rendered_logits(head: SemanticHead, samples: LiveSamples, background_index: int, lookup=None) -> torch.Tensor:
+    """Volume-rendered logits (rays, C) of the cached samples; the unabsorbed rest is background.
+    ``lookup``: the position encoding's lookup of ``samples.positions``, when shared."""
+    classes = head.out.out_features
+    logits = samples.weights.new_zeros(samples.rays, classes)
+    if samples.ray.numel():
+        per_sample = head(samples.features, samples.positions, lookup)
+        logits = logits.index_add(0, samples.ray, samples.weights[:, None] * per_sample)
+    bg = torch.zeros(classes, device=logits.device)
     bg[background_index] = BACKGROUND_LOGIT
-    return logits + rest[:, None] * bg[None, :]
+    return logits + samples.rest[:, None] * bg[None, :]

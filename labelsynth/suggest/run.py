@@ -129,10 +129,10 @@ def suggest(
         fitted, gstats = fit_geometry(capture, rec, dev, seed=opts.seed, progress=progress)
         seconds["geometry"] = time.time() - t0
         run = RunFolder(partial)
-        run.save_field(fitted)
 
         t0 = time.time()
         view = FieldRenderer(fitted)
+        run.save_field(view.field_with_surface())  # expand --geometry renders it without extracting it again
         mesh, caster = view.mesh(), view.caster()
         cams = capture.unit_cameras()
         cfg = coverage or CoverageConfig(seed=opts.seed)

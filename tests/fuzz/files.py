@@ -574,6 +574,9 @@ def file_cases() -> list[Case]:
                               ("field.pt",)),
         "fingerprint-not-a-dict": (field_edit(lambda m, t: m.update(fitted_on=[1, 2])), ("field.pt",)),
         "no-fingerprint": (field_edit(lambda m, t: m.pop("fitted_on")), ("field.pt",)),
+        "surface-not-a-mesh": (field_edit(lambda m, t: (m.update(surface_resolution=8), t.update({
+            "surface.vertices": torch.zeros(3, 3), "surface.normals": torch.zeros(3, 3),
+            "surface.faces": torch.tensor([[0, 1, 7]])}))), ("field.pt", "surface")),
         "image-changed": (png(IMG0, np.full((40, 40, 3), 90, np.uint8)), ("view_00",)),
         "pose-changed": (edit_json(TRANSFORMS, matrix_value(0, 3, 0.123)), ("view_01",)),
     }

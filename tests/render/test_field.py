@@ -223,3 +223,37 @@ def test_the_embree_cast_agrees_with_trimesh_and_its_barycentric_coordinates_giv
     assert np.allclose(bary[hit].sum(1), 1.0) and bary[hit].min() > -1e-5
     corners = mesh.vertices[mesh.faces[faces[hit]]]
     assert np.allclose(np.einsum("nk,nkd->nd", bary[hit], corners), points[hit])
+
+
+def test_field_pt_keeps_the_surface_it_was_rendered_with(tiny_expanded, tmp_path, monkeypatch):
+    """expand stores the extracted surface in field.pt: a later render (relabel, report) reads it
+    instead of running marching cubes again, and renders the same masks; a stored surface that
+    is not a mesh is one line."""
+    import labelsynth.render.renderer as renderer
+
+    run = tiny_expanded
+    cap = load_capture(run.capture_dir)
+    fitted = load_field(run.out / "field.pt")
+    assert fitted.surface is not None and fitted.surface.resolution == fitted.recipe.render.mesh_resolution
+    saved = RunFolder(run.out).read_masks(cap.names)
+
+    def extract(*args, **kwargs):
+        raise AssertionError("marching cubes ran again")
+
+    monkeypatch.setattr(renderer, "extract_mesh", extract)
+    again = _masks_of(fitted, cap)
+    assert all(np.array_equal(again[n], saved[n]) for n in cap.names)
+    monkeypatch.undo()
+    # another mesh resolution: extracted, not the stored one
+    import dataclasses
+
+    other = dataclasses.replace(fitted.recipe.render, mesh_resolution=fitted.surface.resolution // 2)
+    view = FieldRenderer(dataclasses.replace(fitted, recipe=dataclasses.replace(fitted.recipe, render=other)))
+    assert len(view.mesh().vertices) != len(fitted.surface.vertices)
+    # faces pointing past the vertices: refused in one line
+    state = torch.load(run.out / "field.pt", weights_only=True)
+    state["tensors"]["surface.faces"][0, 0] = len(state["tensors"]["surface.vertices"]) + 5
+    torch.save(state, tmp_path / "bad.pt")
+    with pytest.raises(RunFolderError, match=r"bad\.pt: its stored surface is not a mesh of its field") as err:
+        load_field(tmp_path / "bad.pt")
+    assert "\n" not in str(err.value)

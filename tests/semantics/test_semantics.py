@@ -215,3 +215,91 @@ def test_leave_one_out_heads_trained_together_each_leave_out_only_their_own_fram
         say_c = heads["C"](feats[left_pts, 0], pos[left_pts, 0]).argmax(-1)  # taught only by A there
     assert float((say_a == 2).float().mean()) > 0.9
     assert float((say_c == 1).float().mean()) > 0.9
+
+
+def _random_baked(n_rays: int = 300, k: int = 4, seed: int = 0):
+    """Baked rays with random samples, a third of the slots of weight 0 (dropped or padding)."""
+    from labelsynth.semantics.training import BakedRays
+
+    g = torch.Generator().manual_seed(seed)
+    weights = torch.rand(n_rays, k, generator=g) / k
+    weights[torch.rand(n_rays, k, generator=g) < 0.33] = 0.0
+    weights[0] = 0.0  # a ray that met nothing
+    return BakedRays(
+        positions=torch.rand(n_rays, k, 3, generator=g) * 1.6 - 0.8, features=torch.randn(n_rays, k, 15, generator=g),
+        weights=weights, labels=torch.randint(0, 6, (n_rays,), generator=g), ray_weight=torch.ones(n_rays),
+        frame_of_ray=torch.zeros(n_rays, dtype=torch.long), frame_names=["a"],
+        frame_class_counts=np.full((1, 6), 50), frame_expert=[True],
+    )
+
+
+def _small_head(seed: int = 0, dropout: float = 0.0):
+    from labelsynth.geometry.encoding import HashGridEncoding
+    from labelsynth.semantics.head import SemanticHead
+
+    torch.manual_seed(seed)
+    enc = HashGridEncoding(levels=4, features_per_level=2, log2_table=10, base_resolution=4, max_resolution=32)
+    return SemanticHead(15, 6, 16, dropout, enc)
+
+
+def test_rendered_logits_skip_weightless_samples_without_changing_the_sum():
+    """Paper Eq. 3 over the K cached samples: evaluating the head only where a sample carries
+    weight gives the dense weighted sum (plus the unabsorbed rest as background)."""
+    from labelsynth.semantics.training import BACKGROUND_LOGIT, LiveSamples, rendered_logits
+
+    baked = _random_baked()
+    head = _small_head().eval()
+    rays = torch.arange(len(baked))
+    live = LiveSamples.of(baked, rays)
+    assert live.ray.numel() == int((baked.weights > 0).sum())  # the head sees only live samples
+    with torch.no_grad():
+        got = rendered_logits(head, live, background_index=0)
+        r, k, _ = baked.positions.shape
+        dense = head(baked.features.reshape(r * k, -1), baked.positions.reshape(r * k, 3)).reshape(r, k, -1)
+        want = (baked.weights[..., None] * dense).sum(1)
+        want[:, 0] += (1.0 - baked.weights.sum(1)).clamp(0, 1) * BACKGROUND_LOGIT
+    assert torch.allclose(got, want, atol=1e-5)
+    assert torch.allclose(got[0], torch.tensor([BACKGROUND_LOGIT, 0, 0, 0, 0, 0]))  # the empty ray
+    # a batch drawn with repeats finds each ray's samples (slots count rays of ``baked``)
+    batch = torch.tensor([5, 5, 17, 0, 299])
+    sub = LiveSamples.of(baked, batch)
+    assert torch.equal(sub.positions, baked.positions.reshape(-1, 3)[sub.slots])
+    with torch.no_grad():
+        assert torch.allclose(rendered_logits(head, sub, 0), got[batch], atol=1e-6)
+
+
+def test_cached_grid_lookups_train_the_same_head_as_lookups_made_every_step():
+    """``lookup_cache_mb`` is speed only: the head trained with the position lookups of every
+    sample made once equals, parameter for parameter, the head trained looking them up per step."""
+    from dataclasses import replace
+
+    from labelsynth.semantics.training import train_semantic
+
+    cm = ClassMap.default()
+    cfg = replace(SemanticConfig(), iterations=30, min_epochs=0.0, rays_per_batch=64)
+    heads = {}
+    for budget in (0.0, 64.0):
+        baked = _random_baked()
+        head = _small_head(dropout=0.5)
+        train_semantic(head, baked, cm, replace(cfg, lookup_cache_mb=budget), seed=1, progress=False)
+        assert (baked._lookups is None) == (budget == 0.0)
+        heads[budget] = head.state_dict()
+    assert all(torch.equal(heads[0.0][k], heads[64.0][k]) for k in heads[0.0])
+
+
+def test_baking_drops_samples_below_the_minimum_weight():
+    from labelsynth.geometry.sdf import SDFConfig, SDFField
+    from labelsynth.semantics.training import sample_frozen
+
+    torch.manual_seed(0)
+    field = SDFField(SDFConfig(levels=2, log2_table=8, base_resolution=4, max_resolution=8, feature_dim=3))
+    field.initialise_shape([[0.0, 0.0, -1.0]])
+    grid = OccupancyGrid(16)
+    origins = torch.tensor([[0.0, 0.0, -0.9]]).repeat(16, 1) + torch.rand(16, 3) * 0.1
+    dirs = torch.tensor([[0.0, 0.0, 1.0]]).repeat(16, 1)
+    _, _, every = sample_frozen(field, grid, origins, dirs, 64, 8)
+    _, _, kept = sample_frozen(field, grid, origins, dirs, 64, 8, min_weight=0.01)
+    assert bool(((every > 0) & (every < 0.01)).any())  # there are light samples to drop
+    assert torch.equal(kept, torch.where(every >= 0.01, every, torch.zeros(())))
+    # highest first: the kept ones are a prefix of each ray's slots
+    assert bool((kept[:, 1:] <= kept[:, :-1]).all())
