@@ -24,8 +24,11 @@ SLOW_EXPAND = ["--recipe", "fast", "--device", "cpu", "--labels", "annotations",
 
 def _start(args: list[str], cwd: Path) -> subprocess.Popen:
     env = {**os.environ, "PYTHONPATH": str(ROOT), "OMP_NUM_THREADS": "1", "PYTHONUNBUFFERED": "1"}
+    # Ctrl-C as a terminal would give it: a suite started in the background of a script
+    # inherits SIGINT ignored, and labelsynth rightly leaves an ignored SIGINT alone.
     return subprocess.Popen([sys.executable, *args], cwd=cwd, env=env, stdout=subprocess.PIPE,
-                            stderr=subprocess.PIPE, text=True)
+                            stderr=subprocess.PIPE, text=True,
+                            preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
 
 
 def _wait_for(condition, proc: subprocess.Popen, timeout: float = 120.0) -> None:
