@@ -61,17 +61,24 @@ class FieldRenderer:
     def mesh(self) -> trimesh.Trimesh:
         """The surface in unit-cube coordinates (cached)."""
         if self._mesh is None:
-            stored = self.field.surface
-            if stored is not None and stored.resolution == self.config.mesh_resolution:
+            stored = self._stored_surface()
+            if stored is not None:
                 self._mesh = stored.mesh()
             else:
                 self._mesh = extract_mesh(self.field.sdf.sdf_batched, self.config.mesh_resolution, self.field.device)
             self._caster = None
         return self._mesh
 
+    def _stored_surface(self) -> SurfaceMesh | None:
+        """The field's stored surface when it was extracted as this recipe asks (else None)."""
+        stored = self.field.surface
+        return stored if stored is not None and stored.resolution == self.config.mesh_resolution else None
+
     def field_with_surface(self) -> FittedField:
-        """The field with the surface this renderer extracted (``FittedField.surface``), for
+        """The field with the surface this renderer renders (``FittedField.surface``), for
         saving: whoever loads it renders without extracting it again."""
+        if self._stored_surface() is not None:
+            return self.field
         return dataclasses.replace(self.field, surface=SurfaceMesh.of(self.mesh(), self.config.mesh_resolution))
 
     def caster(self) -> SurfaceCaster:

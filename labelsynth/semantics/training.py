@@ -417,14 +417,16 @@ class LiveSamples:
 
     @classmethod
     def of(cls, baked: BakedRays, rays: torch.Tensor) -> "LiveSamples":
-        """The samples of ``baked``'s rays ``rays`` (a batch), weight 0 marking a slot without one."""
-        positions, features, weights = baked.positions[rays], baked.features[rays], baked.weights[rays]
-        r, k, _ = positions.shape
+        """The samples of ``baked``'s rays ``rays`` (a batch), weight 0 marking a slot without one;
+        positions and features are gathered for the live samples only."""
+        weights = baked.weights.index_select(0, rays)
+        r, k = weights.shape
         flat = weights.reshape(-1)
         live = torch.nonzero(flat > 0).squeeze(1)
         ray = torch.div(live, k, rounding_mode="floor")
-        return cls(r, rays.index_select(0, ray) * k + (live - ray * k), ray,
-                   positions.reshape(r * k, 3).index_select(0, live), features.reshape(r * k, -1).index_select(0, live),
+        slots = rays.index_select(0, ray) * k + (live - ray * k)
+        return cls(r, slots, ray, baked.positions.reshape(-1, 3).index_select(0, slots),
+                   baked.features.reshape(-1, baked.features.shape[-1]).index_select(0, slots),
                    flat.index_select(0, live), (1.0 - weights.sum(1)).clamp(0.0, 1.0))
 
     def lookup(self, lookups: SampleLookups | None, encoding: HashGridEncoding | None) -> GridLookup | None:
