@@ -171,7 +171,9 @@ class Bench:
             base = self.synth(kind, s)
             out = self.root / "segment" / arm / f"{kind}-seed{s}"
             if not out.is_dir():
-                rep = segment_capture(base / "capture", model, out, device=self.args.device, progress=False)
+                # auto: onnxruntime's CUDA provider where it has one (onnxruntime-gpu), else the CPU; --device
+                # cuda is for training and expand, and a CPU-only onnxruntime beside a CUDA torch is common.
+                rep = segment_capture(base / "capture", model, out, device="auto", progress=False)
                 seconds, frames = seconds + rep.seconds, frames + rep.frames
             scores.append(self.score_dir(out, base / "truth"))
         return summary(pool(scores)), seconds, frames
