@@ -322,8 +322,9 @@ def train_semantic(
             logits = rendered_logits(head, live, bg_idx, live.lookup(lookups, head.position_encoding))
             loss = weighted_cross_entropy(logits, baked.labels[idx], class_w, baked.ray_weight[idx])
             opt.zero_grad(set_to_none=True)
-            loss.backward()
-            opt.step()
+            if loss.requires_grad:  # else no ray of the batch met the surface: nothing for the head to learn
+                loss.backward()
+                opt.step()
             sched.step()
             loss_ema = loss.item() if it == 0 else 0.95 * loss_ema + 0.05 * loss.item()
             bar.update(task, advance=1, status=f"loss {loss_ema:.4f}")
@@ -398,8 +399,9 @@ def _joint_step(heads: dict, class_w: list, left_out: list, baked: BakedRays, ba
         logits = rendered_logits(head, live, bg_idx, lookup)
         loss = loss + weighted_cross_entropy(logits, labels, cw, ray_w * (frames != j))
     opt.zero_grad(set_to_none=True)
-    loss.backward()
-    opt.step()
+    if loss.requires_grad:  # as in train_semantic: a batch whose rays all missed the surface teaches nothing
+        loss.backward()
+        opt.step()
 
 
 @dataclass

@@ -287,6 +287,27 @@ def test_cached_grid_lookups_train_the_same_head_as_lookups_made_every_step():
     assert all(torch.equal(heads[0.0][k], heads[64.0][k]) for k in heads[0.0])
 
 
+def test_batches_whose_rays_all_miss_the_surface_train_nothing_and_do_not_fail():
+    """A field with no surface where the rays go (a failed geometry, a capture of backdrop only)
+    bakes rays without a weighted sample: the head has nothing to learn there. Found on a tiny
+    table capture whose geometry formed no object: loss.backward() raised on a constant loss."""
+    from dataclasses import replace
+
+    from labelsynth.semantics.training import train_leave_one_out, train_semantic
+
+    cm = ClassMap.default()
+    cfg = replace(SemanticConfig(), iterations=5, min_epochs=0.0, rays_per_batch=64)
+    baked = _random_baked()
+    baked.weights.zero_()
+    head = _small_head()
+    before = {k: v.clone() for k, v in head.state_dict().items()}
+    stats = train_semantic(head, baked, cm, cfg, seed=1, progress=False)
+    assert stats.iterations == 5
+    assert all(torch.equal(before[k], v) for k, v in head.state_dict().items())
+    heads = train_leave_one_out(lambda: _small_head(), baked, cm, cfg, ["a"], seed=1)
+    assert set(heads) == {"a"}
+
+
 def test_baking_drops_samples_below_the_minimum_weight():
     from labelsynth.geometry.sdf import SDFConfig, SDFField
     from labelsynth.semantics.training import sample_frozen
