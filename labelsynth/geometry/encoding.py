@@ -115,7 +115,7 @@ class HashGridEncoding(nn.Module):
 
     def _pad(self, out: torch.Tensor) -> torch.Tensor:
         n, L = out.shape[0], self.active_levels
-        out = out.reshape(n, -1)
+        out = out.reshape(n, L * self.features_per_level)  # explicit: n may be 0
         if L < self.levels:
             out = torch.cat([out, out.new_zeros(n, (self.levels - L) * self.features_per_level)], dim=-1)
         return out

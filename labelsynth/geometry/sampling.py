@@ -180,13 +180,16 @@ class RayWeights:
     weights: torch.Tensor  # (S,) T_i * alpha_i
 
 
-def neus_weights(sdf_field: _SDF, samples: PackedSamples, cos_anneal_ratio: float, *, train: bool) -> RayWeights:
+def neus_weights(sdf_field: _SDF, samples: PackedSamples, cos_anneal_ratio: float, *, train: bool,
+                 opacity_grad: bool = True) -> RayWeights:
     """The one place NeuS weights along packed rays are computed (RGB rendering, the semantic bake).
 
     The SDF gradient is first order and detached: second derivatives are paid only on the
     eikonal subset of a training step, which is where most of the time went when every
     sample carried them. With ``train`` the sdf and feature keep their graph (the colour
-    loss reaches the SDF through them); otherwise they are detached.
+    loss reaches the SDF through them); otherwise they are detached. Without ``opacity_grad``
+    the weights come from a detached sdf and sharpness: the loss then reaches the SDF network
+    only through the feature the colour head reads (``GeometryConfig.opacity_warmup``).
     """
     with torch.enable_grad():
         x = samples.positions.detach().requires_grad_(True)
@@ -194,5 +197,6 @@ def neus_weights(sdf_field: _SDF, samples: PackedSamples, cos_anneal_ratio: floa
         (grad,) = torch.autograd.grad(sdf.sum(), x, retain_graph=train)
     if not train:
         sdf, feature = sdf.detach(), feature.detach()
-    alpha = neus_alpha(sdf, grad, samples.dirs, samples.deltas, sdf_field.inv_s, cos_anneal_ratio)
+    sdf_for_alpha, inv_s = (sdf, sdf_field.inv_s) if opacity_grad else (sdf.detach(), sdf_field.inv_s.detach())
+    alpha = neus_alpha(sdf_for_alpha, grad, samples.dirs, samples.deltas, inv_s, cos_anneal_ratio)
     return RayWeights(sdf, feature, grad, composite_weights(alpha, samples.ray_index, samples.num_rays))

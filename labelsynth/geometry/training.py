@@ -96,14 +96,16 @@ def render_rays_rgb(
     cos_anneal_ratio: float,
     steps: int,
     train: bool,
+    opacity_grad: bool = True,
 ):
-    """NeuS colour rendering of a batch of rays; returns rgb, opacity and the samples."""
+    """NeuS colour rendering of a batch of rays; returns rgb, opacity and the samples
+    (``opacity_grad``: see ``neus_weights``)."""
     samples = march(origins, dirs, grid, steps=steps, perturb=train)
     n = origins.shape[0]
     far = ray_box(origins, dirs)[1]
     if samples.positions.shape[0] == 0:
         return sdf.get_background(dirs, origins, far), torch.zeros(n, device=origins.device), samples
-    along = neus_weights(sdf, samples, cos_anneal_ratio, train=train)
+    along = neus_weights(sdf, samples, cos_anneal_ratio, train=train, opacity_grad=opacity_grad)
     color = sdf.get_color(along.feature, F.normalize(along.gradient, dim=-1), samples.dirs)
     rgb = accumulate(color, along.weights, samples.ray_index, n)
     opacity = accumulate_scalar(along.weights, samples.ray_index, n)
@@ -185,6 +187,7 @@ def train_geometry(
     params = [p for group in opt.param_groups for p in group["params"]]
     grid = OccupancyGrid(cfg.occupancy_resolution, device, margin=cfg.occupancy_margin, full_every=cfg.occupancy_full_every)
     n_rays = min(1024, cfg.max_rays)
+    warmup_steps = int(round(cfg.opacity_warmup * cfg.iterations))
     psnr_ema, spr_ema, occ = 0.0, 0.0, 1.0
     t0 = time.time()
     with make_progress(progress) as bar:
@@ -195,7 +198,8 @@ def train_geometry(
                 occ = grid.update(sdf.sdf_batched, _band(cfg, sdf))
             origins, dirs, target = bank.sample(n_rays, gen)
             cos_ratio = min(1.0, it / max(cfg.cos_anneal_iters, 1))
-            rgb, _, samples = render_rays_rgb(sdf, grid, origins, dirs, cos_ratio, cfg.march_steps, train=True)
+            rgb, _, samples = render_rays_rgb(sdf, grid, origins, dirs, cos_ratio, cfg.march_steps, train=True,
+                                              opacity_grad=it >= warmup_steps)
             loss = F.l1_loss(rgb, target) + cfg.eikonal_weight * _eikonal_loss(sdf, samples.positions, cfg, gen)
             opt.zero_grad(set_to_none=True)
             loss.backward(inputs=params)

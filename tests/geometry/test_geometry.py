@@ -10,6 +10,7 @@ import torch
 
 from labelsynth.geometry.encoding import HashGridEncoding
 from labelsynth.geometry.sampling import OccupancyGrid, composite_weights, march, ray_box
+from labelsynth.geometry.sdf import SDFConfig, SDFField
 
 
 def test_encoding_fast_path_matches_autograd_and_finite_differences():
@@ -66,6 +67,16 @@ def test_progressive_levels_zero_the_fine_features():
     out = enc(torch.rand(8, 3) * 2 - 1)
     assert out.shape == (8, 10)
     assert torch.all(out[:, 4:] == 0) and torch.any(out[:, :4] != 0)
+
+
+def test_the_encoding_of_no_points_is_empty():
+    """A batch whose rays all miss the occupied cells hands the encoding no points."""
+    enc = HashGridEncoding(levels=5, features_per_level=2, log2_table=10, base_resolution=4, max_resolution=64)
+    enc.set_active_levels(3)
+    assert enc(torch.zeros(0, 3)).shape == (0, 10)
+    field = SDFField(SDFConfig(levels=4, log2_table=12, max_resolution=64))
+    sdf, feature = field.get_sdf(torch.zeros(0, 3))
+    assert sdf.shape == (0,) and feature.shape == (0, field.cfg.feature_dim)
 
 
 def test_ray_box_and_march_stay_in_the_cube():

@@ -59,3 +59,30 @@ def test_one_path_serves_both() -> None:
     torch.testing.assert_close(w.sum(1), opacity, atol=1e-6, rtol=0)
     # weights are T_i * alpha_i: never negative, never more than 1 per ray
     assert bool((along.weights >= 0).all()) and bool((opacity <= 1 + 1e-6).all())
+
+
+def test_without_opacity_grad_the_colour_loss_reaches_the_sdf_only_through_the_feature() -> None:
+    """``geometry.opacity_warmup``: the same weights, but no gradient from them to the SDF network
+    or the sharpness; the colour head's input (the feature) still carries one."""
+    field, grid, origins, dirs = _scene()
+    field.variance.data.fill_(0.5)  # sharpness from the learned variance, not the floor
+    samples = march(origins, dirs, grid, steps=64, perturb=False)
+    with_grad = neus_weights(field, samples, 0.5, train=True)
+    without = neus_weights(field, samples, 0.5, train=True, opacity_grad=False)
+    torch.testing.assert_close(without.weights, with_grad.weights.detach())
+    assert with_grad.weights.requires_grad and not without.weights.requires_grad
+    bias = field.sdf_l1.bias  # [0] offsets the distance (moves the whole surface), [1:] the feature
+    g_bias, g_var = torch.autograd.grad(with_grad.weights.sum(), [bias, field.variance])
+    assert g_bias[0].abs() > 0 and g_var.abs() > 0
+    (g_feat,) = torch.autograd.grad(without.feature.sum(), [bias])
+    assert g_feat[1:].abs().sum() > 0
+
+    # and through the whole colour rendering: the SDF's bias (which moves the whole surface)
+    # gets a gradient only through the colour head's feature, none through opacity
+    torch.manual_seed(3)  # training samples are jittered along the ray: the same jitter for both
+    rgb, opacity, _ = render_rays_rgb(field, grid, origins, dirs, 0.5, 64, train=True, opacity_grad=False)
+    assert not opacity.requires_grad
+    torch.manual_seed(3)
+    rgb_full, opacity_full, _ = render_rays_rgb(field, grid, origins, dirs, 0.5, 64, train=True)
+    torch.testing.assert_close(rgb.detach(), rgb_full.detach())
+    assert opacity_full.requires_grad
