@@ -9,7 +9,7 @@ from typing import Literal, get_args
 from ..config import Count, HashTableLog2, Momentum, NonNegative, OpenUnitInterval, Positive, UnitInterval
 
 # "auto" is resolved per run by training.resolve_class_weighting (which labels are taught)
-ClassWeighting = Literal["auto", "paper", "equal-tissue", "uniform", "inverse-sqrt", "inverse"]
+ClassWeighting = Literal["auto", "paper", "equal-tissue", "uniform", "inverse-sqrt", "inverse", "tissue-balanced"]
 CLASS_WEIGHTINGS: tuple[str, ...] = get_args(ClassWeighting)
 
 DecisionRule = Literal["wound-bed-first", "argmax"]
@@ -55,12 +55,15 @@ class SemanticConfig:
     expert_weight: Positive = 4.0
     """With --labels both: weight of annotated frames against predictions."""
     class_weighting: ClassWeighting = "auto"
-    """auto | paper | equal-tissue | uniform | inverse-sqrt | inverse (``head.class_weights``);
+    """auto | paper | equal-tissue | uniform | inverse-sqrt | inverse | tissue-balanced (``head.class_weights``);
     auto = equal-tissue from expert annotations alone, uniform when predictions teach."""
     background_weight: NonNegative = 0.1
     """The paper and equal-tissue schemes: weight of background."""
     tissue_weight_floor: UnitInterval = 0.1
     """The paper scheme: w_y = floor + (1 - floor) * N_y / sum N (paper: 0.1 / 0.9)."""
+    tissue_power: UnitInterval = 0.25
+    """The tissue-balanced scheme: tissue weights proportional to N_y^-power (0: uniform;
+    docs/benchmarks.md, "Class weights and the decision rule")."""
     adam_beta1: Momentum = 0.9
     """Adam, learning rate cosine-annealed from lr to lr * lr_final_factor."""
     adam_beta2: Momentum = 0.99

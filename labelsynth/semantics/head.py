@@ -69,6 +69,7 @@ def class_weights(
     background_weight: float = 0.1,
     floor: float = 0.1,
     scheme: str = "paper",
+    tissue_power: float = 0.25,
 ) -> np.ndarray:
     """Weighted-CE class weights, indexed like ``classes``.
 
@@ -82,6 +83,10 @@ def class_weights(
     argmax is the per-point majority of the views.
     ``inverse-sqrt`` / ``inverse``: w_y proportional to N_y^-1/2 / N_y^-1 (classes without
     pixels get 0), the usual counters to class imbalance; rare classes win ties.
+    ``tissue-balanced``: background 1, every other class N_y^-``tissue_power``, scaled so that
+    together they weigh what their pixels weigh under ``uniform``: bed against background stays
+    the views' majority, while a tissue on a few hundred pixels is not drowned by one on
+    thousands (under ``uniform`` such a class is never learned from predictions).
     The scale is irrelevant: the loss is normalised by the summed weight.
     """
     counts = np.asarray(pixel_counts, dtype=np.float64)
@@ -102,6 +107,13 @@ def class_weights(
         if present.any():
             # pixel-weighted mean weight 1: keeps the loss on the scale of plain CE
             weights /= (weights * counts).sum() / counts.sum()
+    elif scheme == "tissue-balanced":
+        bg = classes.background_index
+        tissue = np.array([i != bg and counts[i] > 0 for i in range(classes.num_classes)])
+        weights[bg] = 1.0
+        if tissue.any():
+            weights[tissue] = counts[tissue] ** -tissue_power
+            weights[tissue] *= counts[tissue].sum() / (weights[tissue] * counts[tissue]).sum()
     else:
         bg = classes.background_index
         tissue = [i for i in range(classes.num_classes) if i != bg]

@@ -53,6 +53,21 @@ def test_class_weighting_schemes():
         class_weights(counts, cm, scheme="median")
 
 
+def test_tissue_balanced_keeps_the_bed_against_background_and_lifts_rare_tissue():
+    cm = ClassMap.default()
+    counts = np.array([1000, 400, 100, 0, 100, 4])
+    w = class_weights(counts, cm, scheme="tissue-balanced", tissue_power=0.5)
+    assert w[0] == 1.0  # background as in the plain loss
+    tissue = [1, 2, 4, 5]
+    # the tissues together weigh what their pixels weigh: the bed against background is unbiased
+    assert (w[tissue] * counts[tissue]).sum() == pytest.approx(counts[tissue].sum(), rel=1e-5)
+    assert w[2] / w[1] == pytest.approx(2.0, rel=1e-5) and w[5] / w[2] == pytest.approx(5.0, rel=1e-5)
+    assert w[3] == 0.0  # no pixels, no weight
+    mild = class_weights(counts, cm, scheme="tissue-balanced", tissue_power=0.25)
+    assert mild[2] / mild[1] == pytest.approx(2.0 ** 0.5, rel=1e-5)
+    assert np.allclose(class_weights(counts, cm, scheme="tissue-balanced", tissue_power=0.0)[[0, 1, 2, 4, 5]], 1.0)
+
+
 def test_wound_bed_first_decision():
     cm = ClassMap.default()  # background, granulation, slough, necrotic, epithelial, unknown
     probs = np.array([
@@ -139,8 +154,8 @@ def test_frames_without_labels_contribute_no_rays():
     assert torch.equal(baked.labels, baked2.labels)
     # the rays meet the plane: most of their weight lies on it
     assert float(baked.weights.sum(1).mean()) > 0.9
-    # class_weighting auto: expert-only labels -> equal-tissue, any prediction -> uniform
-    assert not baked.expert_only and resolve_class_weighting("auto", baked.expert_only) == "uniform"
+    # class_weighting auto: expert-only labels -> equal-tissue, any prediction -> tissue-balanced
+    assert not baked.expert_only and resolve_class_weighting("auto", baked.expert_only) == "tissue-balanced"
     experts = [LabelledFrame(f.camera, f.mask, 1.0, f"e{i}", expert=True) for i, f in enumerate(frames)]
     baked_e = bake_semantic_rays(field, grid, experts, cm, cfg, steps=32, progress=False)
     assert baked_e.expert_only and resolve_class_weighting("auto", baked_e.expert_only) == "equal-tissue"
