@@ -56,7 +56,7 @@ class SemanticConfig:
     """With --labels both: weight of annotated frames against predictions."""
     class_weighting: ClassWeighting = "auto"
     """auto | paper | equal-tissue | uniform | inverse-sqrt | inverse | tissue-balanced (``head.class_weights``);
-    auto = equal-tissue from expert annotations alone, uniform when predictions teach."""
+    auto = equal-tissue from expert annotations alone, tissue-balanced when predictions teach."""
     background_weight: NonNegative = 0.1
     """The paper and equal-tissue schemes: weight of background."""
     tissue_weight_floor: UnitInterval = 0.1

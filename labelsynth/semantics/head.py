@@ -101,19 +101,13 @@ def class_weights(
         weights[:] = 1.0
         weights[classes.background_index] = background_weight
     elif scheme in ("inverse-sqrt", "inverse"):
-        power = 0.5 if scheme == "inverse-sqrt" else 1.0
-        present = counts > 0
-        weights[present] = counts[present] ** -power
-        if present.any():
-            # pixel-weighted mean weight 1: keeps the loss on the scale of plain CE
-            weights /= (weights * counts).sum() / counts.sum()
+        weights = _inverse_frequency(counts, 0.5 if scheme == "inverse-sqrt" else 1.0)
     elif scheme == "tissue-balanced":
         bg = classes.background_index
-        tissue = np.array([i != bg and counts[i] > 0 for i in range(classes.num_classes)])
+        tissue_counts = counts.copy()
+        tissue_counts[bg] = 0.0
+        weights = _inverse_frequency(tissue_counts, tissue_power)
         weights[bg] = 1.0
-        if tissue.any():
-            weights[tissue] = counts[tissue] ** -tissue_power
-            weights[tissue] *= counts[tissue].sum() / (weights[tissue] * counts[tissue]).sum()
     else:
         bg = classes.background_index
         tissue = [i for i in range(classes.num_classes) if i != bg]
@@ -122,6 +116,17 @@ def class_weights(
             weights[i] = floor + (1.0 - floor) * (counts[i] / total if total > 0 else 0.0)
         weights[bg] = background_weight
     return weights.astype(np.float32)
+
+
+def _inverse_frequency(counts: np.ndarray, power: float) -> np.ndarray:
+    """w_y = N_y^-power for the classes with pixels (0 for the others), scaled to a pixel-weighted
+    mean of 1 so that together they weigh what their pixels weigh under plain CE."""
+    weights = np.zeros_like(counts)
+    present = counts > 0
+    weights[present] = counts[present] ** -power
+    if present.any():
+        weights /= (weights * counts).sum() / counts.sum()
+    return weights
 
 
 def wound_bed_logits(logits: torch.Tensor, classes: ClassMap) -> torch.Tensor:
