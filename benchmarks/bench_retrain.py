@@ -25,6 +25,9 @@ whose truth holds the class). Arms (``--arms``; K = expert frames per capture):
     st-both      ``--labels both``: (ii) with each capture's expert frame (iii); round 2 likewise
   varied frames (``synth --phone`` captures: exposure, white balance, blur, noise, JPEG, distance, zoom)
     pa1, pb1, pc1, pd   as a1, b1, c1, d on phone-like captures, tested on phone-like captures
+    pst-raw, pst-pred, pst-both   self-training on phone-like captures (``--phone-self-seeds``) from
+                 M0 = pa1's model: the weak model whose masks disagree from view to view (it fails
+                 where a video's exposure or distance drifts), the paper's main mode
 
 The reduced run measured in docs/training.md (20 frames of 160x120, 3 train / 2 test / 2 self-training
 captures, 400 steps of 4 crops of 96) is the command written there.
@@ -74,7 +77,8 @@ class Bench:
         self.root: Path = args.out
         self.seeds = {
             PLAIN: {"train": args.train_seeds, "val": [args.val_seed], "test": args.test_seeds, "self": args.self_seeds},
-            PHONE: {"train": args.phone_train_seeds, "val": [args.phone_val_seed], "test": args.phone_test_seeds},
+            PHONE: {"train": args.phone_train_seeds, "val": [args.phone_val_seed], "test": args.phone_test_seeds,
+                    "self": args.phone_self_seeds},
         }
         self._classes = None
 
@@ -243,23 +247,27 @@ class Bench:
             shutil.rmtree(seg)
         return json.loads(report.read_text())
 
-    def selftrain(self, mode: str) -> Path:
-        """``labelsynth selftrain`` from M0 (a1's model) on the self-training captures (views with
-        one expert frame), held out: the validation capture's every frame."""
+    def selftrain(self, mode: str, kind: str = PLAIN) -> Path:
+        """``labelsynth selftrain`` from M0 (a1's model; pa1's on phone-like captures) on the self-training
+        captures (views with one expert frame), held out: the validation capture's every frame."""
         a = self.args
-        out = self.root / "selftrain" / mode
-        m0 = self.root / "models" / "a1" / "model.onnx"
+        prefix = "p" if kind == PHONE else ""
+        out = self.root / "selftrain" / (f"{kind}-{mode}" if kind == PHONE else mode)
+        m0 = self.root / "models" / f"{prefix}a1" / "model.onnx"
         if not m0.is_file():
-            self.run_arm("a1")
+            self.run_arm(f"{prefix}a1")
         rounds = {"raw": 1, "predictions": a.rounds, "both": a.both_rounds}[mode]
         done = out / "selftrain.json"
-        arm = "st-" + {"predictions": "pred"}.get(mode, mode)
+        arm = prefix + "st-" + {"predictions": "pred"}.get(mode, mode)
         if done.is_file() and len(json.loads(done.read_text()).get("rounds", [])) == rounds + 1 \
                 and not a.retrain_arm(arm):
             return out
-        caps = [str(self.view(PLAIN, s, 1)) for s in self.seeds[PLAIN]["self"]]
+        if not self.seeds[kind]["self"]:
+            raise SystemExit(f"{arm}: no self-training captures (--{'phone-' if prefix else ''}self-seeds)")
+        caps = [str(self.view(kind, s, 1)) for s in self.seeds[kind]["self"]]
         cmd = ["selftrain", *caps, "--model", str(m0), "--out", str(out), "--labels", mode, "--rounds", str(rounds),
-               "--holdout", str(self.view(PLAIN, a.val_seed, None)), "--recipe", a.recipe, "--device", a.device,
+               "--holdout", str(self.view(kind, self.seeds[kind]["val"][0], None)), "--recipe", a.recipe,
+               "--device", a.device,
                "--steps", str(a.steps), "--batch-size", str(a.batch_size), "--crop", str(a.crop), "--lr", str(a.lr),
                "--input-size", a.input_size, "--no-confidence-weight", "--seed", str(a.seed),
                "--eval-every", str(max(1, a.steps // 10))]
@@ -267,7 +275,7 @@ class Bench:
             cmd += ["--set", o]
         if a.retrain_arm(arm):
             cmd.append("--force")
-        self.cli(cmd, f"selftrain-{mode}")
+        self.cli(cmd, f"selftrain-{prefix}{mode}")
         return out
 
     # --- arms ---------------------------------------------------------------------------------
@@ -330,15 +338,15 @@ class Bench:
             quality = self.label_quality([(self.expand(kind, s, k) / "masks", self.synth(kind, s) / "truth")
                                           for s in train_seeds])
             return [self._row(arm, regime, what, kind, self.root / "models" / arm, report, quality, k=k)]
-        if arm.startswith("st-"):
-            mode = {"raw": "raw", "pred": "predictions", "both": "both"}[arm[3:]]
-            out = self.selftrain(mode)
+        if name.startswith("st-"):
+            mode = {"raw": "raw", "pred": "predictions", "both": "both"}[name[3:]]
+            out = self.selftrain(mode, kind)
             state = json.loads((out / "selftrain.json").read_text())
             names = [Path(c).name for c in state["settings"]["captures"]]
             rows = []
             for r in range(1, len(state["rounds"])):
                 here = out / f"round{r}"
-                truth = [self.synth(PLAIN, s) / "truth" for s in self.seeds[PLAIN]["self"]]
+                truth = [self.synth(kind, s) / "truth" for s in self.seeds[kind]["self"]]
                 label_dirs = [here / "predictions" / n for n in names] if mode == "raw" else \
                     [here / "expanded" / n / "masks" for n in names]
                 quality = self.label_quality(list(zip(label_dirs, truth)))
@@ -348,7 +356,8 @@ class Bench:
                 what = {"raw": f"{source}'s masks of every frame, raw",
                         "predictions": f"{source}'s masks fused by expand --labels predictions",
                         "both": f"{source}'s masks + 1 expert frame fused by expand --labels both"}[mode]
-                rows.append(self._row(arm, "self-training", what, PLAIN, here / "model", report, quality, round=r))
+                regime = "self-training" + (" (varied frames)" if kind == PHONE else "")
+                rows.append(self._row(arm, regime, what, kind, here / "model", report, quality, round=r))
             return rows
         raise SystemExit(f"unknown arm {arm!r}")
 
@@ -356,9 +365,10 @@ class Bench:
 def _model_dir(root: Path, row: dict) -> Path:
     if "model_dir" in row:
         return Path(row["model_dir"])
-    if row["arm"].startswith("st-"):
-        mode = {"raw": "raw", "pred": "predictions", "both": "both"}[row["arm"][3:]]
-        return root / "selftrain" / mode / f"round{row['round']}" / "model"
+    if row["arm"].lstrip("p").startswith("st-"):
+        mode = {"raw": "raw", "pred": "predictions", "both": "both"}[row["arm"].split("-", 1)[1]]
+        folder = f"{PHONE}-{mode}" if row["arm"].startswith("p") else mode
+        return root / "selftrain" / folder / f"round{row['round']}" / "model"
     return root / "models" / row["arm"]
 
 
@@ -460,16 +470,20 @@ def targets(by: dict[str, dict]) -> list[str]:
                 worst = min(wb("b4") - wb("a4"), tm("b4") - tm("a4"))
                 line += f" (target: no worse than -0.005: {'met' if worst >= -0.005 else 'NOT met'})"
             out.append(line)
-    if "st-raw r1" in by and "st-pred r1" in by:
-        dw, dt = wb("st-pred r1") - wb("st-raw r1"), tm("st-pred r1") - tm("st-raw r1")
-        out.append(f"self-training: (ii)-(i) wound bed {dw:+.3f} (target >= +0.03: {'met' if dw >= 0.03 else 'NOT met'}), "
-                   f"tissue mean {dt:+.3f} (target >= +0.05: {'met' if dt >= 0.05 else 'NOT met'})")
-    for mode in ("pred", "both"):
-        if f"st-{mode} r1" in by and f"st-{mode} r2" in by:
-            dw = wb(f"st-{mode} r2") - wb(f"st-{mode} r1")
-            dt = tm(f"st-{mode} r2") - tm(f"st-{mode} r1")
-            out.append(f"self-training ({'ii' if mode == 'pred' else 'iii'}): round 2 - round 1 wound bed {dw:+.3f}, "
-                       f"tissue mean {dt:+.3f} (target: not below: {'met' if min(dw, dt) >= 0 else 'NOT met'})")
+    for p, where in (("", "plain captures, M0 = a1"), ("p", "varied frames, M0 = pa1")):
+        if f"{p}st-raw r1" in by and f"{p}st-pred r1" in by:
+            dw = wb(f"{p}st-pred r1") - wb(f"{p}st-raw r1")
+            dt = tm(f"{p}st-pred r1") - tm(f"{p}st-raw r1")
+            out.append(f"self-training ({where}): (ii)-(i) wound bed {dw:+.3f} (target >= +0.03: "
+                       f"{'met' if dw >= 0.03 else 'NOT met'}), tissue mean {dt:+.3f} (target >= +0.05: "
+                       f"{'met' if dt >= 0.05 else 'NOT met'})")
+        for mode in ("pred", "both"):
+            if f"{p}st-{mode} r1" in by and f"{p}st-{mode} r2" in by:
+                dw = wb(f"{p}st-{mode} r2") - wb(f"{p}st-{mode} r1")
+                dt = tm(f"{p}st-{mode} r2") - tm(f"{p}st-{mode} r1")
+                out.append(f"self-training ({where}, {'ii' if mode == 'pred' else 'iii'}): round 2 - round 1 wound bed "
+                           f"{dw:+.3f}, tissue mean {dt:+.3f} (target: not below: "
+                           f"{'met' if min(dw, dt) >= 0 else 'NOT met'})")
     return out
 
 
@@ -502,12 +516,12 @@ def scale(a) -> str:
     """What this run is: the sizes every arm shares (printed first and with the table)."""
     return (f"scale: {a.frames} frames of {a.width}x{a.height} per capture; plain: {len(a.train_seeds)} train, 1 validation, "
             f"{len(a.test_seeds)} test, {len(a.self_seeds)} self-training captures; phone: {len(a.phone_train_seeds)} train, "
-            f"1 validation, {len(a.phone_test_seeds)} test; every arm: {a.arch} {a.steps} steps, batch {a.batch_size}, "
+            f"1 validation, {len(a.phone_test_seeds)} test, {len(a.phone_self_seeds)} self-training; every arm: {a.arch} {a.steps} steps, batch {a.batch_size}, "
             f"crop {a.crop}, lr {a.lr:g}, input {a.input_size}, seed {a.seed}; expand --recipe {a.recipe}"
             + (f" --set {' '.join(a.overrides)}" if a.overrides else "") + f"; {a.threads or 'default'} thread(s)")
 
 
-DEFAULT_ARMS = "d,a1,b1,c1,f1,a1-split,st-raw,st-pred,st-both,a4,b4,c4,a2,b2,c2,pd,pa1,pb1,pc1"
+DEFAULT_ARMS = "d,a1,b1,c1,f1,a1-split,st-raw,st-pred,st-both,a4,b4,c4,a2,b2,c2,pd,pa1,pb1,pc1,pst-raw,pst-pred,pst-both"
 
 
 def main() -> None:
@@ -521,6 +535,7 @@ def main() -> None:
     ap.add_argument("--phone-train-seeds", type=_ints, default=_ints("121,122,123,124,125,126"))
     ap.add_argument("--phone-val-seed", type=int, default=221)
     ap.add_argument("--phone-test-seeds", type=_ints, default=_ints("321,322,323"))
+    ap.add_argument("--phone-self-seeds", type=_ints, default=_ints("131,132,133,134,135,136"))
     ap.add_argument("--frames", type=int, default=50)
     ap.add_argument("--width", type=int, default=320)
     ap.add_argument("--height", type=int, default=240)
@@ -557,7 +572,7 @@ def main() -> None:
     args.retrain_arm = lambda arm: "all" in retrain or arm in retrain
     os.environ.setdefault("NO_ALBUMENTATIONS_UPDATE", "1")
     every = [*args.train_seeds, args.val_seed, *args.test_seeds, *args.self_seeds]
-    phone = [*args.phone_train_seeds, args.phone_val_seed, *args.phone_test_seeds]
+    phone = [*args.phone_train_seeds, args.phone_val_seed, *args.phone_test_seeds, *args.phone_self_seeds]
     if len(set(every)) != len(every) or len(set(phone)) != len(phone):
         raise SystemExit("train, validation, test and self-training seeds must all differ")
 
@@ -603,7 +618,7 @@ def main() -> None:
             points = ", ".join(f"{c['step']}: {fmt(c['val_tissue_mean'])}" for c in r["curve"])
             print(f"\nceiling ({r['arm']}) validation Dice (mean of {', '.join(present[r['kind']])}) by step: {points}")
     for r in rows:
-        if r["arm"].startswith("st-") and r["labels"].get("predictions"):
+        if r["arm"].lstrip("p").startswith("st-") and r["labels"].get("predictions"):
             p = r["labels"]["predictions"]
             print(f"{_label(r)}: the masks it was made from vs truth: wound bed {fmt(p['classes']['wound_bed']['dice'])}, "
                   f"tissue mean {fmt(p['tissue_mean_dice'])}")

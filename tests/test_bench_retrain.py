@@ -24,8 +24,9 @@ FRAMES, W, H = 4, 48, 36
 def bench(tmp_path_factory) -> Path:
     out = tmp_path_factory.mktemp("bench_retrain") / "out"
     cmd = [sys.executable, str(ROOT / "benchmarks" / "bench_retrain.py"), "--out", str(out),
-           "--arms", "d,a1,b1,c1,f1,a1-split,st-raw", "--train-seeds", "1,2", "--val-seed", "3", "--test-seeds", "4",
-           "--self-seeds", "5,6", "--frames", str(FRAMES), "--width", str(W), "--height", str(H), "--steps", "2",
+           "--arms", "d,a1,b1,c1,f1,a1-split,st-raw,pa1,pst-raw", "--train-seeds", "1,2", "--val-seed", "3",
+           "--test-seeds", "4", "--self-seeds", "5,6", "--phone-train-seeds", "7,8", "--phone-val-seed", "9",
+           "--phone-test-seeds", "10", "--phone-self-seeds", "11,12", "--frames", str(FRAMES), "--width", str(W), "--height", str(H), "--steps", "2",
            "--batch-size", "2", "--crop", "32", "--input-size", f"{W}x{H}", "--floor", "0.6"]
     for o in TINY_EXPAND:
         cmd += ["--set", o]
@@ -47,7 +48,7 @@ def _train(out: Path, arm: str) -> dict:
 
 def test_every_arm_is_in_the_table(bench: Path) -> None:
     rows = _rows(bench)
-    assert set(rows) == {"d", "a1", "b1", "c1", "f1", "a1-split", "st-raw r1"}
+    assert set(rows) == {"d", "a1", "b1", "c1", "f1", "a1-split", "st-raw r1", "pa1", "pst-raw r1"}
     text = (bench / "stdout.txt").read_text()
     for arm in rows:
         assert f"| {arm} |" in text
@@ -57,7 +58,8 @@ def test_every_arm_is_in_the_table(bench: Path) -> None:
     for r in rows.values():
         assert r["test"]["classes"]["wound_bed"]["n"] == FRAMES  # every test frame scored
         seg = r["arm"] + (f"-r{r['round']}" if "round" in r else "")
-        assert len(list((bench / "segment" / seg / "plain-seed4").glob("*.png"))) == FRAMES
+        test = "phone-seed10" if r["kind"] == "phone" else "plain-seed4"
+        assert len(list((bench / "segment" / seg / test).glob("*.png"))) == FRAMES
 
 
 def test_expert_arms_train_on_the_chosen_frames(bench: Path) -> None:
@@ -118,3 +120,16 @@ def test_self_training_arm_reads_m0(bench: Path) -> None:
     assert state["settings"]["captures"] == [str(bench / "views" / "plain-K1" / f"seed{s}") for s in (5, 6)]
     row = _rows(bench)["st-raw r1"]
     assert row["train_frames"] == 2 * FRAMES and row["labels"]["predictions"]["classes"]["wound_bed"]["n"] > 0
+
+
+def test_phone_self_training_arm_reads_pa1(bench: Path) -> None:
+    """pst-*: M0 is the weak model of the varied-frames regime (pa1), the captures are phone-like ones,
+    the held-out capture is the phone validation capture, and the row is scored on the phone test captures."""
+    state = json.loads((bench / "selftrain" / "phone-raw" / "selftrain.json").read_text())
+    assert state["settings"]["model"] == str(bench / "models" / "pa1" / "model.onnx")
+    assert state["settings"]["captures"] == [str(bench / "views" / "phone-K1" / f"seed{s}") for s in (11, 12)]
+    assert state["settings"]["holdout"] == [str(bench / "views" / "phone-all" / "seed9")]
+    row = _rows(bench)["pst-raw r1"]
+    assert row["kind"] == "phone" and row["regime"] == "self-training (varied frames)"
+    assert row["train_frames"] == 2 * FRAMES
+    assert "self-training (varied frames, M0 = pa1)" not in (bench / "stdout.txt").read_text()  # needs pst-pred too
