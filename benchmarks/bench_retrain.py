@@ -477,6 +477,11 @@ def targets(by: dict[str, dict]) -> list[str]:
             out.append(f"self-training ({where}): (ii)-(i) wound bed {dw:+.3f} (target >= +0.03: "
                        f"{'met' if dw >= 0.03 else 'NOT met'}), tissue mean {dt:+.3f} (target >= +0.05: "
                        f"{'met' if dt >= 0.05 else 'NOT met'})")
+            ceiling = f"{p}d"
+            if ceiling in by and wb(ceiling) - wb(f"{p}st-raw r1") < 0.03:
+                out.append(f"self-training ({where}): the ceiling ({ceiling}, exact truth of every frame) is only "
+                           f"{wb(ceiling) - wb(f'{p}st-raw r1'):+.3f} wound bed above (i): a +0.03 gain would put (ii) "
+                           f"above it, so that part of the target cannot be met with this M0")
         for mode in ("pred", "both"):
             if f"{p}st-{mode} r1" in by and f"{p}st-{mode} r2" in by:
                 dw = wb(f"{p}st-{mode} r2") - wb(f"{p}st-{mode} r1")
