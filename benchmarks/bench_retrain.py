@@ -478,9 +478,10 @@ def targets(by: dict[str, dict]) -> list[str]:
                        f"{'met' if dw >= 0.03 else 'NOT met'}), tissue mean {dt:+.3f} (target >= +0.05: "
                        f"{'met' if dt >= 0.05 else 'NOT met'})")
             ceiling = f"{p}d"
-            if ceiling in by and wb(ceiling) - wb(f"{p}st-raw r1") < 0.03:
+            room = wb(ceiling) - wb(f"{p}st-raw r1") if ceiling in by else None
+            if room is not None and room < 0.03:
                 out.append(f"self-training ({where}): the ceiling ({ceiling}, exact truth of every frame) is only "
-                           f"{wb(ceiling) - wb(f'{p}st-raw r1'):+.3f} wound bed above (i): a +0.03 gain would put (ii) "
+                           f"{room:+.3f} wound bed above (i): a +0.03 gain would put (ii) "
                            f"above it, so that part of the target cannot be met with this M0")
         for mode in ("pred", "both"):
             if f"{p}st-{mode} r1" in by and f"{p}st-{mode} r2" in by:
