@@ -120,7 +120,8 @@ def run_choice(case: Path, suggest_out: Path, out: Path, chosen: list[str], args
     if not RunFolder(out).is_finished() or RunFolder(out).read_run().annotated_frames != chosen:
         t0 = time.time()
         expand(case / "capture", out, labels="annotations", recipe=args.recipe, overrides=args.set, device=args.device,
-               annotated_frames=list(chosen), report=False, geometry=suggest_out, force=True, progress=False)
+               annotated_frames=list(chosen), report=False, geometry=suggest_out, force=True, progress=False,
+               seed=args.fit_seed)
         log(f"  expanded {out.relative_to(args.work)} from {', '.join(chosen)} in {time.time() - t0:.0f} s")
     cap = load_capture(case / "capture")
     result = {"chosen": chosen, **scores_of(out, case / "truth", cap.classes, chosen),
@@ -141,7 +142,8 @@ def run_case(name: str, case: Path, args) -> dict:
     if not (suggest_out / "suggest.json").is_file() or read_suggestion(suggest_out)["annotate"] < kmax:
         t0 = time.time()
         suggest(case / "capture", SuggestOptions(annotate=kmax, recipe=args.recipe, overrides=args.set,
-                                                 device=args.device), suggest_out, force=True, progress=False)
+                                                 device=args.device, seed=args.fit_seed), suggest_out, force=True,
+                progress=False)
         log(f"{name}: suggest fitted the geometry and ranked the frames in {time.time() - t0:.0f} s")
     sug = read_suggestion(suggest_out)
     names = load_capture(case / "capture").names
@@ -299,6 +301,9 @@ def main() -> None:
     ap.add_argument("--set", action="append", default=[])
     ap.add_argument("--device", default="cpu")
     ap.add_argument("--seed", type=int, default=0, help="seed of the random subsets")
+    ap.add_argument("--fit-seed", type=int, default=0,
+                    help="seed of suggest's geometry and of every expand (another --work per seed: how much of a "
+                         "difference between choices is the fit's own variation)")
     ap.add_argument("--only", default="", help="comma list of choices (suggested, spread, random0, ...) to expand and "
                     "score, without the table: runs in parallel fill the cache, a run without --only tabulates")
     ap.add_argument("--timing", action="store_true", help="also the --geometry timing on the 50-frame wound")
