@@ -133,3 +133,39 @@ def test_phone_self_training_arm_reads_pa1(bench: Path) -> None:
     assert row["kind"] == "phone" and row["regime"] == "self-training (varied frames)"
     assert row["train_frames"] == 2 * FRAMES
     assert "self-training (varied frames, M0 = pa1)" not in (bench / "stdout.txt").read_text()  # needs pst-pred too
+
+
+def _bench_module():
+    import importlib.util
+
+    spec = importlib.util.spec_from_file_location("bench_retrain", ROOT / "benchmarks" / "bench_retrain.py")
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+def _scored(wound_bed: float, tissue_mean: float) -> dict:
+    return {"test": {"classes": {"wound_bed": {"dice": wound_bed}}, "tissue_mean_dice": tissue_mean}}
+
+
+def test_self_training_targets_read_the_right_arms() -> None:
+    """The target lines compare the arms the issue names, say met / NOT met by the thresholds, and
+    say when the ceiling leaves (i) no room for the +0.03 wound-bed gain (no run needed: rows by hand)."""
+    targets = _bench_module().targets
+    by = {"pst-raw r1": _scored(0.950, 0.700), "pst-pred r1": _scored(0.970, 0.760),
+          "pst-pred r2": _scored(0.969, 0.770), "pd": _scored(0.960, 0.900)}
+    lines = targets(by)
+    gain = next(x for x in lines if "(ii)-(i)" in x)
+    assert "varied frames, M0 = pa1" in gain and "wound bed +0.020 (target >= +0.03: NOT met)" in gain
+    assert "tissue mean +0.060 (target >= +0.05: met)" in gain
+    ceiling = next(x for x in lines if "the ceiling (pd" in x)
+    assert "+0.010 wound bed above (i)" in ceiling
+    round2 = next(x for x in lines if "round 2 - round 1" in x)
+    assert "wound bed -0.001, tissue mean +0.010" in round2 and "NOT met" in round2
+    assert not any("plain captures" in x for x in lines)  # no plain arm given: no plain line
+
+    by["pd"] = _scored(0.990, 0.950)  # room enough: no ceiling line
+    by["pst-pred r2"] = _scored(0.971, 0.770)
+    lines = targets(by)
+    assert not any("the ceiling (pd" in x for x in lines)
+    assert "(target: not below: met)" in next(x for x in lines if "round 2 - round 1" in x)
