@@ -115,16 +115,17 @@ def run_choice(case: Path, suggest_out: Path, out: Path, chosen: list[str], args
     score_file = out.with_name(out.name + ".score.json")
     if score_file.is_file():
         cached = json.loads(score_file.read_text())
-        if cached.get("chosen") == chosen:
+        if cached.get("chosen") == chosen and cached.get("seed", 0) == args.fit_seed:
             return cached
-    if not RunFolder(out).is_finished() or RunFolder(out).read_run().annotated_frames != chosen:
+    run = RunFolder(out).read_run() if RunFolder(out).is_finished() else None
+    if run is None or run.annotated_frames != chosen or run.seed != args.fit_seed:
         t0 = time.time()
         expand(case / "capture", out, labels="annotations", recipe=args.recipe, overrides=args.set, device=args.device,
                annotated_frames=list(chosen), report=False, geometry=suggest_out, force=True, progress=False,
                seed=args.fit_seed)
         log(f"  expanded {out.relative_to(args.work)} from {', '.join(chosen)} in {time.time() - t0:.0f} s")
     cap = load_capture(case / "capture")
-    result = {"chosen": chosen, **scores_of(out, case / "truth", cap.classes, chosen),
+    result = {"chosen": chosen, "seed": args.fit_seed, **scores_of(out, case / "truth", cap.classes, chosen),
               "seconds": RunFolder(out).read_run().seconds}
     score_file.write_text(json.dumps(result, indent=1))
     return result
@@ -139,7 +140,8 @@ def run_case(name: str, case: Path, args) -> dict:
     work = args.work / name
     suggest_out = work / "suggest"
     kmax = max(args.ks)
-    if not (suggest_out / "suggest.json").is_file() or read_suggestion(suggest_out)["annotate"] < kmax:
+    done = read_suggestion(suggest_out) if (suggest_out / "suggest.json").is_file() else None
+    if done is None or done["annotate"] < kmax or done.get("seed", 0) != args.fit_seed:
         t0 = time.time()
         suggest(case / "capture", SuggestOptions(annotate=kmax, recipe=args.recipe, overrides=args.set,
                                                  device=args.device, seed=args.fit_seed), suggest_out, force=True,
@@ -302,8 +304,9 @@ def main() -> None:
     ap.add_argument("--device", default="cpu")
     ap.add_argument("--seed", type=int, default=0, help="seed of the random subsets")
     ap.add_argument("--fit-seed", type=int, default=0,
-                    help="seed of suggest's geometry and of every expand (another --work per seed: how much of a "
-                         "difference between choices is the fit's own variation)")
+                    help="seed of suggest's geometry and of every expand (one --work per seed keeps each seed's cache: how "
+                         "much of a difference between choices is the fit's own variation); a cached fit of another "
+                         "seed is redone")
     ap.add_argument("--only", default="", help="comma list of choices (suggested, spread, random0, ...) to expand and "
                     "score, without the table: runs in parallel fill the cache, a run without --only tabulates")
     ap.add_argument("--timing", action="store_true", help="also the --geometry timing on the 50-frame wound")
