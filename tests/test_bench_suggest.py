@@ -1,0 +1,45 @@
+"""benchmarks/bench_suggest.py end to end on a tiny all-around capture (the numbers mean nothing):
+suggest fits the geometry with --fit-seed, every choice expands from it with that seed, the table
+has the case's row, and a rerun with another seed redoes the cached fit instead of reusing it."""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+TINY = ["geometry.iterations=20", "semantic.iterations=10", "render.mesh_resolution=32", "geometry.target_samples=1024",
+        "geometry.max_rays=256", "geometry.march_steps=32", "geometry.occupancy_resolution=16",
+        "semantic.rays_per_batch=256", "semantic.max_rays_per_frame=500"]
+
+
+def _bench(work: Path, seed: int) -> subprocess.CompletedProcess:
+    cmd = [sys.executable, str(ROOT / "benchmarks" / "bench_suggest.py"), "--work", str(work), "--cases", "around",
+           "--ks", "2", "--random", "1", "--frames", "6", "--width", "48", "--height", "36", "--recipe", "fast",
+           "--fit-seed", str(seed)]
+    for o in TINY:
+        cmd += ["--set", o]
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(ROOT), os.environ.get("PYTHONPATH", "")])}
+    res = subprocess.run(cmd, env=env, capture_output=True, text=True, timeout=600)
+    assert res.returncode == 0, res.stdout[-3000:] + res.stderr[-3000:]
+    return res
+
+
+def test_fit_seed_reaches_suggest_and_every_expand(tmp_path: Path) -> None:
+    res = _bench(tmp_path, 3)
+    assert any(line.startswith("| around | 2 |") for line in res.stdout.splitlines())
+    assert json.loads((tmp_path / "around" / "suggest" / "suggest.json").read_text())["seed"] == 3
+    for choice in ("suggested", "spread", "random0"):
+        run = json.loads((tmp_path / "around" / "K2" / choice / "run.json").read_text())
+        assert run["seed"] == 3 and len(run["annotated_frames"]) == 2
+    summary = json.loads((tmp_path / "bench_suggest.json").read_text())
+    row = summary["cases"][0]["by_k"]["2"]
+    assert row["suggested"]["scored"] == row["spread"]["scored"] == 4  # the 6 frames less the 2 chosen
+
+    res = _bench(tmp_path, 4)  # another seed on the same --work: the fit is redone, not reused
+    assert "suggest fitted the geometry" in res.stdout + res.stderr
+    assert json.loads((tmp_path / "around" / "suggest" / "suggest.json").read_text())["seed"] == 4
+    assert json.loads((tmp_path / "around" / "K2" / "spread" / "run.json").read_text())["seed"] == 4
