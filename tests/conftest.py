@@ -8,7 +8,10 @@ the suite fits geometry only once.
 
 from __future__ import annotations
 
+import importlib.util
 import os
+import subprocess
+import sys
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -38,6 +41,32 @@ TINY_OVERRIDES = [
     "semantic.train_scale=1.0",
     "render.mesh_resolution=128",
 ]
+
+TINY_EXPAND = ["geometry.iterations=20", "semantic.iterations=10", "render.mesh_resolution=32",
+               "geometry.target_samples=1024", "geometry.max_rays=256", "geometry.march_steps=32",
+               "geometry.occupancy_resolution=16", "semantic.rays_per_batch=256", "semantic.max_rays_per_frame=500"]
+"""Overrides for expands that only have to run end to end (benchmarks and loops in the suite): the
+numbers they give mean nothing."""
+
+REPO = Path(__file__).resolve().parents[1]
+
+
+def run_benchmark(script: str, args: list[str], timeout: float = 600) -> subprocess.CompletedProcess:
+    """``python benchmarks/SCRIPT ARGS`` with this checkout importable; fails the test with the
+    output's tail when the script fails."""
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(REPO), os.environ.get("PYTHONPATH", "")])}
+    res = subprocess.run([sys.executable, str(REPO / "benchmarks" / script), *args], env=env, capture_output=True,
+                         text=True, timeout=timeout)
+    assert res.returncode == 0, res.stdout[-3000:] + res.stderr[-3000:]
+    return res
+
+
+def load_benchmark(script: str):
+    """A benchmark script as a module (benchmarks/ is not a package), for its functions."""
+    spec = importlib.util.spec_from_file_location(Path(script).stem, REPO / "benchmarks" / script)
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
 
 
 @pytest.fixture

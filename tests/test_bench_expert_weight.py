@@ -5,25 +5,15 @@ that expert weight, and every arm lands in the table."""
 from __future__ import annotations
 
 import json
-import os
-import subprocess
-import sys
 from pathlib import Path
 
-ROOT = Path(__file__).resolve().parents[1]
-TINY = ["geometry.iterations=20", "semantic.iterations=10", "render.mesh_resolution=32", "geometry.target_samples=1024",
-        "geometry.max_rays=256", "geometry.march_steps=32", "geometry.occupancy_resolution=16",
-        "semantic.rays_per_batch=256", "semantic.max_rays_per_frame=500"]
+from .conftest import TINY_EXPAND, run_benchmark
 
 
 def test_expert_weight_arms(tmp_path: Path) -> None:
-    cmd = [sys.executable, str(ROOT / "benchmarks" / "bench_expert_weight.py"), "--work", str(tmp_path),
-           "--cases", "t:plain:2:7", "--weights", "1,4", "--frames", "4", "--width", "48", "--height", "36"]
-    for o in TINY:
-        cmd += ["--set", o]
-    env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(ROOT), os.environ.get("PYTHONPATH", "")])}
-    res = subprocess.run(cmd, env=env, capture_output=True, text=True, timeout=600)
-    assert res.returncode == 0, res.stdout[-3000:] + res.stderr[-3000:]
+    res = run_benchmark("bench_expert_weight.py", ["--work", str(tmp_path), "--cases", "t:plain:2:7", "--weights", "1,4",
+                                                   "--frames", "4", "--width", "48", "--height", "36",
+                                                   *(w for o in TINY_EXPAND for w in ("--set", o))])
     assert len(list((tmp_path / "t" / "capture" / "annotations").glob("*.png"))) == 2
     pred = json.loads((tmp_path / "t-pred" / "run.json").read_text())
     assert pred["labels"] == "predictions"

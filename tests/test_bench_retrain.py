@@ -5,34 +5,25 @@ lands in the table. The self-training loop itself is tested in tests/train/test_
 from __future__ import annotations
 
 import json
-import os
-import subprocess
-import sys
 from pathlib import Path
 
 import numpy as np
 import pytest
 
-ROOT = Path(__file__).resolve().parents[1]
-TINY_EXPAND = ["geometry.iterations=20", "semantic.iterations=10", "render.mesh_resolution=32",
-               "geometry.target_samples=1024", "geometry.max_rays=256", "geometry.march_steps=32",
-               "geometry.occupancy_resolution=16", "semantic.rays_per_batch=256", "semantic.max_rays_per_frame=500"]
+from .conftest import TINY_EXPAND, load_benchmark, run_benchmark
+
 FRAMES, W, H = 4, 48, 36
 
 
 @pytest.fixture(scope="module")
 def bench(tmp_path_factory) -> Path:
     out = tmp_path_factory.mktemp("bench_retrain") / "out"
-    cmd = [sys.executable, str(ROOT / "benchmarks" / "bench_retrain.py"), "--out", str(out),
-           "--arms", "d,a1,b1,c1,f1,a1-split,st-raw,pa1,pst-raw", "--train-seeds", "1,2", "--val-seed", "3",
-           "--test-seeds", "4", "--self-seeds", "5,6", "--phone-train-seeds", "7,8", "--phone-val-seed", "9",
-           "--phone-test-seeds", "10", "--phone-self-seeds", "11,12", "--frames", str(FRAMES), "--width", str(W), "--height", str(H), "--steps", "2",
-           "--batch-size", "2", "--crop", "32", "--input-size", f"{W}x{H}", "--floor", "0.6"]
-    for o in TINY_EXPAND:
-        cmd += ["--set", o]
-    env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(ROOT), os.environ.get("PYTHONPATH", "")])}
-    res = subprocess.run(cmd, env=env, capture_output=True, text=True, timeout=1500)
-    assert res.returncode == 0, res.stdout[-3000:] + res.stderr[-3000:]
+    args = ["--out", str(out), "--arms", "d,a1,b1,c1,f1,a1-split,st-raw,pa1,pst-raw", "--train-seeds", "1,2", "--val-seed", "3",
+            "--test-seeds", "4", "--self-seeds", "5,6", "--phone-train-seeds", "7,8", "--phone-val-seed", "9",
+            "--phone-test-seeds", "10", "--phone-self-seeds", "11,12", "--frames", str(FRAMES), "--width", str(W), "--height", str(H), "--steps", "2",
+            "--batch-size", "2", "--crop", "32", "--input-size", f"{W}x{H}", "--floor", "0.6",
+            *(w for o in TINY_EXPAND for w in ("--set", o))]
+    res = run_benchmark("bench_retrain.py", args, timeout=1500)
     (out / "stdout.txt").write_text(res.stdout)
     return out
 
@@ -135,15 +126,6 @@ def test_phone_self_training_arm_reads_pa1(bench: Path) -> None:
     assert "self-training (varied frames, M0 = pa1)" not in (bench / "stdout.txt").read_text()  # needs pst-pred too
 
 
-def _bench_module():
-    import importlib.util
-
-    spec = importlib.util.spec_from_file_location("bench_retrain", ROOT / "benchmarks" / "bench_retrain.py")
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
-
-
 def _scored(wound_bed: float, tissue_mean: float) -> dict:
     return {"test": {"classes": {"wound_bed": {"dice": wound_bed}}, "tissue_mean_dice": tissue_mean}}
 
@@ -151,7 +133,7 @@ def _scored(wound_bed: float, tissue_mean: float) -> dict:
 def test_self_training_targets_read_the_right_arms() -> None:
     """The target lines compare the arms the issue names, say met / NOT met by the thresholds, and
     say when the ceiling leaves (i) no room for the +0.03 wound-bed gain (no run needed: rows by hand)."""
-    targets = _bench_module().targets
+    targets = load_benchmark("bench_retrain.py").targets
     by = {"pst-raw r1": _scored(0.950, 0.700), "pst-pred r1": _scored(0.970, 0.760),
           "pst-pred r2": _scored(0.969, 0.770), "pd": _scored(0.960, 0.900)}
     lines = targets(by)

@@ -5,27 +5,16 @@ has the case's row, and a rerun with another seed redoes the cached fit instead 
 from __future__ import annotations
 
 import json
-import os
 import subprocess
-import sys
 from pathlib import Path
 
-ROOT = Path(__file__).resolve().parents[1]
-TINY = ["geometry.iterations=20", "semantic.iterations=10", "render.mesh_resolution=32", "geometry.target_samples=1024",
-        "geometry.max_rays=256", "geometry.march_steps=32", "geometry.occupancy_resolution=16",
-        "semantic.rays_per_batch=256", "semantic.max_rays_per_frame=500"]
+from .conftest import TINY_EXPAND, run_benchmark
 
 
 def _bench(work: Path, seed: int) -> subprocess.CompletedProcess:
-    cmd = [sys.executable, str(ROOT / "benchmarks" / "bench_suggest.py"), "--work", str(work), "--cases", "around",
-           "--ks", "2", "--random", "1", "--frames", "6", "--width", "48", "--height", "36", "--recipe", "fast",
-           "--fit-seed", str(seed)]
-    for o in TINY:
-        cmd += ["--set", o]
-    env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(ROOT), os.environ.get("PYTHONPATH", "")])}
-    res = subprocess.run(cmd, env=env, capture_output=True, text=True, timeout=600)
-    assert res.returncode == 0, res.stdout[-3000:] + res.stderr[-3000:]
-    return res
+    return run_benchmark("bench_suggest.py", ["--work", str(work), "--cases", "around", "--ks", "2", "--random", "1",
+                                              "--frames", "6", "--width", "48", "--height", "36", "--recipe", "fast",
+                                              "--fit-seed", str(seed), *(w for o in TINY_EXPAND for w in ("--set", o))])
 
 
 def test_fit_seed_reaches_suggest_and_every_expand(tmp_path: Path) -> None:

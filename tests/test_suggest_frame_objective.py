@@ -3,20 +3,15 @@ the choice is a local optimum that no single swap improves."""
 
 from __future__ import annotations
 
-import importlib.util
 from itertools import combinations
-from pathlib import Path
 
 import numpy as np
 
-ROOT = Path(__file__).resolve().parents[1]
+from .conftest import load_benchmark
 
 
 def _module():
-    spec = importlib.util.spec_from_file_location("suggest_frame_objective", ROOT / "benchmarks" / "suggest_frame_objective.py")
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
+    return load_benchmark("suggest_frame_objective.py")
 
 
 def test_shares_and_choice() -> None:

@@ -23,10 +23,9 @@ from labelsynth.train import TrainConfig
 from labelsynth.train import selftrain as st
 from labelsynth.train.selftrain import SelfTrainConfig, SelfTrainError, selftrain
 
+from ..conftest import TINY_EXPAND
+
 W, H = 48, 36
-TINY_EXPAND = ["geometry.iterations=20", "semantic.iterations=10", "render.mesh_resolution=32",
-               "geometry.target_samples=1024", "geometry.max_rays=256", "geometry.march_steps=32",
-               "geometry.occupancy_resolution=16", "semantic.rays_per_batch=256", "semantic.max_rays_per_frame=500"]
 TINY_TRAIN = dict(steps=2, batch_size=2, crop=32, eval_every=1, device="cpu")
 
 
