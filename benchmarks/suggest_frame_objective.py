@@ -39,7 +39,7 @@ def choose(shares: np.ndarray, k: int) -> list[int]:
         gains[chosen] = -np.inf
         chosen.append(int(np.argmax(gains)))
         best = np.maximum(best, shares[chosen[-1]])
-    improved = True
+    score, improved = frame_score(shares, chosen), True
     while improved:
         improved = False
         for slot in range(k):
@@ -47,8 +47,9 @@ def choose(shares: np.ndarray, k: int) -> list[int]:
                 if c in chosen:
                     continue
                 trial = chosen[:slot] + [c] + chosen[slot + 1:]
-                if frame_score(shares, trial) > frame_score(shares, chosen) + 1e-12:
-                    chosen, improved = trial, True
+                trial_score = frame_score(shares, trial)
+                if trial_score > score + 1e-12:
+                    chosen, score, improved = trial, trial_score, True
     return sorted(chosen)
 
 
