@@ -60,15 +60,14 @@ def case_runs(work: Path, name: str, kind: str, k: int, seed: int, args) -> dict
 
 
 def scores(synth: Path, out: Path) -> tuple[float, float]:
-    from labelsynth.capture import load_capture
-    from labelsynth.pipeline import score_against_truth
+    """Wound bed and tissue-mean Dice on the frames without an expert mask (bench_suggest's scoring)."""
+    from bench_suggest import scores_of
 
-    cap = load_capture(synth / "capture")
-    experts = {p.stem for p in (synth / "capture" / "annotations").glob("*.png")}
-    rows = {r["class"]: r["dice"] for r in score_against_truth(out, synth / "truth", cap.classes, exclude=experts).table()
-            if r["dice"] is not None}
-    tissues = [c for c in rows if c not in ("wound_bed", cap.classes.classes[cap.classes.background_index].name)]
-    return rows["wound_bed"], float(np.mean([rows[t] for t in tissues]))
+    from labelsynth.capture import load_capture
+
+    experts = sorted(p.stem for p in (synth / "capture" / "annotations").glob("*.png"))
+    result = scores_of(out, synth / "truth", load_capture(synth / "capture").classes, experts)
+    return result["wound_bed"], result["tissue_mean"]
 
 
 def main() -> None:
