@@ -11,8 +11,9 @@ Cases (every frame carries its exact truth as an annotation, so any choice can t
                       resized to --lego-size
 
 Per case, `suggest --annotate max(K)` fits the geometry once (greedy: its first K frames are its
-choice for every smaller K). Then for each K and each choice (suggested, spread:K, --random subsets
-drawn with a fixed seed) `expand --geometry SUGGEST_OUT --annotated-frames CHOICE --labels
+choice for every smaller K). Then for each K and each choice (suggested, the frame objective's choice
+on the same geometry (`suggest --objective frames`, ``SurfaceViews.frame_choice``), spread:K,
+--random subsets drawn with a fixed seed) `expand --geometry SUGGEST_OUT --annotated-frames CHOICE --labels
 annotations --no-report` (``pipeline.expand``, what the CLI calls), scored against the truth on the
 frames not chosen: wound bed Dice and the mean Dice of the tissue classes present (the lego:
 foreground Dice, its one class). "worst random" is the random subset of lowest wound-bed Dice.
@@ -153,7 +154,9 @@ def run_case(name: str, case: Path, args) -> dict:
     rows = {}
     for k in args.ks:
         rng = np.random.default_rng([args.seed, k])
-        choices = {"suggested": sorted(ranked[:k]), "spread": select_frames(f"spread:{k}", names)}
+        views = _views(suggest_out)
+        choices = {"suggested": sorted(ranked[:k]), "frames": sorted(names[i] for i in views.frame_choice(k)),
+                   "spread": select_frames(f"spread:{k}", names)}
         for r in range(args.random):
             choices[f"random{r}"] = sorted(names[i] for i in rng.choice(len(names), k, replace=False))
         if args.only:  # one process per choice: expand and score those only (a later run without --only tabulates)
@@ -164,14 +167,14 @@ def run_case(name: str, case: Path, args) -> dict:
         randoms = [res[c] for c in res if c.startswith("random")]
         worst = min(randoms, key=lambda r: r["wound_bed"]) if randoms else None
         cov = {c: _coverage(suggest_out, chosen) for c, chosen in choices.items()}
-        rows[k] = {"suggested": res["suggested"], "spread": res["spread"], "worst_random": worst,
+        rows[k] = {"suggested": res["suggested"], "frames": res["frames"], "spread": res["spread"], "worst_random": worst,
                    "random_mean_wound_bed": float(np.mean([r["wound_bed"] for r in randoms])) if randoms else None,
-                   "coverage": {"suggested": cov["suggested"], "spread": cov["spread"],
+                   "coverage": {"suggested": cov["suggested"], "frames": cov["frames"], "spread": cov["spread"],
                                 "worst_random": cov[next(c for c in res if res[c] is worst)] if worst else None}}
-        s, p = res["suggested"], res["spread"]
-        log(f"{name} K={k}: wound bed suggested {s['wound_bed']:.3f} spread {p['wound_bed']:.3f}"
+        s, fr, p = res["suggested"], res["frames"], res["spread"]
+        log(f"{name} K={k}: wound bed suggested {s['wound_bed']:.3f} frames {fr['wound_bed']:.3f} spread {p['wound_bed']:.3f}"
             + (f" worst random {worst['wound_bed']:.3f}" if worst else "")
-            + f"; tissue mean suggested {_f(s['tissue_mean'])} spread {_f(p['tissue_mean'])}")
+            + f"; tissue mean suggested {_f(s['tissue_mean'])} frames {_f(fr['tissue_mean'])} spread {_f(p['tissue_mean'])}")
     return {"case": name, "frames": len(names), "ranked": ranked, "coverage": sug["coverage_by_k"],
             "geometry_seconds": sug["seconds"].get("geometry"), "suggest_seconds": sug["seconds"], "by_k": rows}
 
@@ -182,19 +185,7 @@ def _coverage(suggest_out: Path, chosen: list[str]) -> float:
     known = json.loads(cache.read_text()) if cache.is_file() else {}
     key = ",".join(chosen)
     if key not in known:
-        import torch
-
-        from labelsynth.capture import load_capture
-        from labelsynth.render.renderer import FieldRenderer
-        from labelsynth.rundir import load_field
-        from labelsynth.suggest import CoverageConfig, read_suggestion, surface_views
-
-        if _VIEWS.get(suggest_out) is None:
-            capture = load_capture(read_suggestion(suggest_out)["capture"])
-            view = FieldRenderer(load_field(suggest_out / "field.pt", torch.device("cpu")))
-            _VIEWS[suggest_out] = surface_views(view.mesh(), capture.unit_cameras(), capture.names, CoverageConfig(),
-                                                caster=view.caster(), progress=False)
-        views = _VIEWS[suggest_out]
+        views = _views(suggest_out)
         known[key] = views.coverage([views.names.index(n) for n in chosen])
         if cache.is_file():  # another run (other --ks) may have added to it meanwhile
             known = {**json.loads(cache.read_text()), key: known[key]}
@@ -202,6 +193,23 @@ def _coverage(suggest_out: Path, chosen: list[str]) -> float:
         tmp.write_text(json.dumps(known, indent=1))
         os.replace(tmp, cache)
     return known[key]
+
+
+def _views(suggest_out: Path):
+    """The suggest run's ``SurfaceViews``, recomputed from its field.pt (once per process)."""
+    if _VIEWS.get(suggest_out) is None:
+        import torch
+
+        from labelsynth.capture import load_capture
+        from labelsynth.render.renderer import FieldRenderer
+        from labelsynth.rundir import load_field
+        from labelsynth.suggest import CoverageConfig, read_suggestion, surface_views
+
+        capture = load_capture(read_suggestion(suggest_out)["capture"])
+        view = FieldRenderer(load_field(suggest_out / "field.pt", torch.device("cpu")))
+        _VIEWS[suggest_out] = surface_views(view.mesh(), capture.unit_cameras(), capture.names, CoverageConfig(),
+                                            caster=view.caster(), progress=False)
+    return _VIEWS[suggest_out]
 
 
 _VIEWS: dict = {}
@@ -271,20 +279,24 @@ def _stages(seconds: dict) -> str:
 
 # --- report -----------------------------------------------------------------------------------
 def table(results: list[dict]) -> str:
-    lines = ["| case | K | coverage sugg / spread / worst rnd | wound bed sugg | spread | worst rnd | "
-             "tissue mean sugg | spread | worst rnd | sugg - spread (wb / tissue) |",
-             "|---|---|---|---|---|---|---|---|---|---|"]
+    lines = ["| case | K | coverage sugg / frames / spread / worst rnd | wound bed sugg | frames | spread | worst rnd | "
+             "tissue mean sugg | frames | spread | worst rnd | sugg - spread (wb / tissue) | frames - spread (wb / tissue) |",
+             "|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
     for res in results:
         for k, row in res["by_k"].items():
-            s, p, w = row["suggested"], row["spread"], row["worst_random"] or {}
+            s, fr, p, w = row["suggested"], row["frames"], row["spread"], row["worst_random"] or {}
             cov = row["coverage"]
-            dwb = s["wound_bed"] - p["wound_bed"]
-            dt = (s["tissue_mean"] - p["tissue_mean"]) if s["tissue_mean"] is not None and p["tissue_mean"] is not None else None
-            lines.append(f"| {res['case']} | {k} | {cov['suggested']:.3f} / {cov['spread']:.3f} / {_f(cov['worst_random'])} | "
-                         f"{s['wound_bed']:.3f} | {p['wound_bed']:.3f} | {_f(w.get('wound_bed'))} | {_f(s['tissue_mean'])} | "
-                         f"{_f(p['tissue_mean'])} | {_f(w.get('tissue_mean'))} | {dwb:+.3f} / "
-                         f"{'-' if dt is None else f'{dt:+.3f}'} |")
+            lines.append(f"| {res['case']} | {k} | {cov['suggested']:.3f} / {cov['frames']:.3f} / {cov['spread']:.3f} / "
+                         f"{_f(cov['worst_random'])} | {s['wound_bed']:.3f} | {fr['wound_bed']:.3f} | {p['wound_bed']:.3f} | "
+                         f"{_f(w.get('wound_bed'))} | {_f(s['tissue_mean'])} | {_f(fr['tissue_mean'])} | "
+                         f"{_f(p['tissue_mean'])} | {_f(w.get('tissue_mean'))} | {_diff(s, p)} | {_diff(fr, p)} |")
     return "\n".join(lines)
+
+
+def _diff(a: dict, b: dict) -> str:
+    """a - b as 'wound bed / tissue mean'."""
+    dt = a["tissue_mean"] - b["tissue_mean"] if a["tissue_mean"] is not None and b["tissue_mean"] is not None else None
+    return f"{a['wound_bed'] - b['wound_bed']:+.3f} / {'-' if dt is None else f'{dt:+.3f}'}"
 
 
 def main() -> None:

@@ -257,6 +257,7 @@ def expand(
 def suggest(
     capture: Path = typer.Argument(..., help="Capture folder (images and poses; no annotations needed)."),
     annotate: int = typer.Option(..., "--annotate", help="How many frames to name for annotation (1..6)."),
+    objective: str = typer.Option("surface", help="surface: the most surface seen, each point at its best chosen view; frames: every frame's view seen by one chosen frame (greedy, then swaps)."),
     out: Optional[Path] = typer.Option(None, "--out", help="Folder for field.pt (the geometry), suggest.json and suggest.png (default: CAPTURE-suggest beside the capture)."),
     recipe: str = typer.Option("default", help="Recipe name (default, fast, quality, paper) or a YAML path; expand --geometry must use the same geometry section."),
     device: str = typer.Option("auto", help="auto | cpu | cuda"),
@@ -268,7 +269,8 @@ def suggest(
     from .options import SuggestOptions
     from .suggest import suggest as run_suggest
 
-    options = SuggestOptions(annotate=annotate, recipe=recipe, device=device, seed=seed, overrides=set_)
+    options = SuggestOptions(annotate=annotate, objective=objective, recipe=recipe, device=device, seed=seed,
+                             overrides=set_)
     result = run_suggest(capture, options, out, force=force)
     typer.echo(result.summary())
 

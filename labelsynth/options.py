@@ -225,6 +225,8 @@ class ExpandOptions(FitOptions):
 
 MAX_ANNOTATE = 6
 """The most frames ``suggest`` names (the method learns from 2-4 annotated frames)."""
+SUGGEST_OBJECTIVES = ("surface", "frames")
+"""What ``suggest``'s choice maximises (``SuggestOptions.objective``)."""
 
 
 @dataclass
@@ -234,9 +236,15 @@ class SuggestOptions(FitOptions):
 
     annotate: int = 3
     """How many frames to suggest for annotation (1..``MAX_ANNOTATE``)."""
+    objective: str = "surface"
+    """What the chosen frames maximise (``suggest.coverage``): ``surface``, the share of the surface
+    seen, each point at its best chosen view (greedy); ``frames``, the mean over the frames of the
+    share of each one's view that its best chosen frame sees (greedy, then swaps)."""
 
     def __post_init__(self) -> None:
         k = self.annotate
         if isinstance(k, bool) or not isinstance(k, int) or not 1 <= k <= MAX_ANNOTATE:
             raise OptionError(f"--annotate must be a whole number in 1..{MAX_ANNOTATE}, not {k!r}")
+        if self.objective not in SUGGEST_OBJECTIVES:
+            raise OptionError(f"--objective must be one of {', '.join(SUGGEST_OBJECTIVES)}, not {self.objective!r}")
         super().__post_init__()

@@ -1,5 +1,5 @@
 """benchmarks/bench_suggest.py end to end on a tiny all-around capture (the numbers mean nothing):
-suggest fits the geometry with --fit-seed, every choice expands from it with that seed, the table
+suggest fits the geometry with --fit-seed, every choice (the frame objective's too) expands from it with that seed, the table
 has the case's row, and a rerun with another seed redoes the cached fit instead of reusing it."""
 
 from __future__ import annotations
@@ -21,12 +21,12 @@ def test_fit_seed_reaches_suggest_and_every_expand(tmp_path: Path) -> None:
     res = _bench(tmp_path, 3)
     assert any(line.startswith("| around | 2 |") for line in res.stdout.splitlines())
     assert json.loads((tmp_path / "around" / "suggest" / "suggest.json").read_text())["seed"] == 3
-    for choice in ("suggested", "spread", "random0"):
+    for choice in ("suggested", "frames", "spread", "random0"):
         run = json.loads((tmp_path / "around" / "K2" / choice / "run.json").read_text())
         assert run["seed"] == 3 and len(run["annotated_frames"]) == 2
     summary = json.loads((tmp_path / "bench_suggest.json").read_text())
     row = summary["cases"][0]["by_k"]["2"]
-    assert row["suggested"]["scored"] == row["spread"]["scored"] == 4  # the 6 frames less the 2 chosen
+    assert row["suggested"]["scored"] == row["frames"]["scored"] == row["spread"]["scored"] == 4  # 6 less the 2 chosen
 
     res = _bench(tmp_path, 4)  # another seed on the same --work: the fit is redone, not reused
     assert "suggest fitted the geometry" in res.stdout + res.stderr

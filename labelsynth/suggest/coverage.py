@@ -12,6 +12,14 @@ mean of that over the points some frame of the capture sees, divided by the same
 (1 = the chosen frames show everything the video shows as well as the video does). It is a
 facility-location function (monotone, submodular), so adding the frame of largest marginal gain,
 K times, is within 1 - 1/e of the best K-subset.
+
+A second objective scores frames rather than surface (``objective="frames"``): teacher i serves
+frame j by the share of j's view of the surface that i sees at least as well,
+``sum_p min(q_i(p), q_j(p)) / sum_p q_j(p)``, and a choice scores the mean over the frames of their
+best teacher's share. It asks that every frame have one teacher that saw what it sees, where the
+surface objective may be satisfied by teachers each seeing a part of a frame's view. Greedy, then
+single swaps until none helps (greedy alone can end below ``spread:K``); its K-choice is not the
+first K of its (K+1)-choice.
 """
 
 from __future__ import annotations
@@ -68,6 +76,7 @@ class SurfaceViews:
     reference: float
     """Pixel density that counts fully (``CoverageConfig.reference_quantile``)."""
     total: float = field(init=False)
+    _shares: np.ndarray | None = field(init=False, default=None, repr=False)
 
     def __post_init__(self) -> None:
         self.total = float(self.quality.max(axis=0).sum()) if len(self.quality) else 0.0
@@ -83,23 +92,70 @@ class SurfaceViews:
             return 0.0
         return float(self.quality[list(indices)].max(axis=0).sum() / self.total)
 
-    def greedy(self, k: int, *, first: list[int] | None = None) -> list[Pick]:
+    def greedy(self, k: int, *, first: list[int] | None = None, among: list[int] | None = None) -> list[Pick]:
         """``k`` frames, each the one that adds most to those before it (ties: the earlier frame).
-        ``first``: frames taken as already chosen (their picks are not returned)."""
-        if not 1 <= k <= len(self.names):
-            raise LabelsynthError(f"cannot choose {k} of {len(self.names)} frames")
+        ``first``: frames taken as already chosen (their picks are not returned); ``among``: the
+        only frames it may choose (default: all)."""
+        pool = len(self.names) if among is None else len(among)
+        if not 1 <= k <= pool:
+            raise LabelsynthError(f"cannot choose {k} of {pool} frames")
         chosen = list(first or [])
         best = self.quality[chosen].max(axis=0) if chosen else np.zeros(self.quality.shape[1], np.float32)
         picks: list[Pick] = []
         for _ in range(k):
             gains = np.maximum(self.quality, best[None]).sum(axis=1, dtype=np.float64) - best.sum(dtype=np.float64)
             gains[chosen] = -np.inf
+            if among is not None:
+                gains[np.setdiff1d(np.arange(len(gains)), among)] = -np.inf
             i = int(np.argmax(gains))
             chosen.append(i)
             best = np.maximum(best, self.quality[i])
             total = self.total if self.total > 0 else 1.0
             picks.append(Pick(self.names[i], i, float(max(gains[i], 0.0) / total), self.coverage(chosen)))
         return picks
+
+    def teacher_shares(self) -> np.ndarray:
+        """(F, F): [i, j] = the share of frame j's view of the surface that frame i sees as well."""
+        if self._shares is None:
+            q = self.quality.astype(np.float64)
+            own = np.maximum(q.sum(axis=1), 1e-12)
+            self._shares = np.stack([np.minimum(q[i][None], q).sum(axis=1) / own for i in range(len(q))])
+        return self._shares
+
+    def frame_score(self, indices: list[int]) -> float:
+        """Mean over the frames of the share of their view that their best teacher in ``indices`` sees."""
+        return float(self.teacher_shares()[list(indices)].max(axis=0).mean()) if indices else 0.0
+
+    def frame_choice(self, k: int) -> list[int]:
+        """``k`` frames by the frame objective: greedy, then single swaps while one raises the score
+        (a local optimum; sorted by index)."""
+        if not 1 <= k <= len(self.names):
+            raise LabelsynthError(f"cannot choose {k} of {len(self.names)} frames")
+        shares = self.teacher_shares()
+        chosen: list[int] = []
+        best = np.zeros(shares.shape[1])
+        for _ in range(k):
+            gains = np.maximum(shares, best[None]).sum(axis=1) - best.sum()
+            gains[chosen] = -np.inf
+            chosen.append(int(np.argmax(gains)))
+            best = np.maximum(best, shares[chosen[-1]])
+        score, improved = self.frame_score(chosen), True
+        while improved:
+            improved = False
+            for slot in range(k):
+                for c in range(len(shares)):
+                    if c in chosen:
+                        continue
+                    trial = chosen[:slot] + [c] + chosen[slot + 1:]
+                    trial_score = self.frame_score(trial)
+                    if trial_score > score + 1e-12:
+                        chosen, score, improved = trial, trial_score, True
+        return sorted(chosen)
+
+    def ordered(self, indices: list[int]) -> list[Pick]:
+        """``indices`` as picks in the order greedy surface coverage would take them among themselves
+        (each one's gain: the surface it adds to those before it)."""
+        return self.greedy(len(indices), among=list(indices))
 
     def curve(self, orders: list[list[int]]) -> list[float]:
         """Coverage of each index list (e.g. spread:k for k = 1..6)."""

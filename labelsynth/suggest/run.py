@@ -4,8 +4,8 @@ OUT (built in OUT.partial, renamed when complete) holds:
 
 - ``field.pt``: the geometry-only field (``rundir.save_field``) with what it was fitted on
   (``geometry.fingerprint``), for ``expand --geometry OUT`` once the annotations exist;
-- ``suggest.json``: the chosen frames in order of choice with each one's gain, their coverage,
-  the same for ``spread:K`` (``capture.select``), the surface sampled, the geometry stage's
+- ``suggest.json``: the objective, the chosen frames in order of choice with each one's gain, their
+  coverage and frame score, the same for ``spread:K`` (``capture.select``), the surface sampled, the geometry stage's
   statistics and seconds;
 - ``suggest.png``: the contact sheet (``sheet``).
 """
@@ -96,9 +96,10 @@ def suggest(
     **values: Any,
 ) -> SuggestResult:
     """Fit stage 1 on ``capture_dir``'s images, save it in OUT, and choose ``annotate`` frames by
-    greedy surface coverage (``coverage``), compared with ``spread:K``.
+    ``objective`` (greedy surface coverage or the frame objective, ``coverage``), compared with
+    ``spread:K``.
 
-    ``options`` or its fields as keywords (``annotate=``, ``recipe=``, ``device=``, ``seed=``,
+    ``options`` or its fields as keywords (``annotate=``, ``objective=``, ``recipe=``, ``device=``, ``seed=``,
     ``overrides=``). Every option, OUT (absent or empty, never inside the capture) and every
     image are checked first: a bad one is one line before OUT.partial exists and before any
     fitting.
@@ -138,11 +139,17 @@ def suggest(
         cfg = coverage or CoverageConfig(seed=opts.seed)
         views = surface_views(mesh, cams, capture.names, cfg, caster=caster, progress=progress)
         upto = min(MAX_ANNOTATE, len(capture))
-        ranked = views.greedy(upto)  # greedy: the first K of a longer run are the K it would pick
-        picks = ranked[: opts.annotate]
+        if opts.objective == "frames":  # its K-choice is not the first K of a longer one: one choice per K
+            by_k = [views.ordered(views.frame_choice(k)) for k in range(1, upto + 1)]
+            picks = by_k[opts.annotate - 1]
+            suggested_curve = [c[-1].coverage for c in by_k]
+        else:
+            ranked = views.greedy(upto)  # greedy: the first K of a longer run are the K it would pick
+            picks = ranked[: opts.annotate]
+            suggested_curve = [p.coverage for p in ranked]
         spread = _spread(capture.names, opts.annotate)
         spread_gains = _gains(views, spread)
-        curves = {"suggested": [p.coverage for p in ranked],
+        curves = {"suggested": suggested_curve,
                   "spread:k": views.curve([_spread(capture.names, k) for k in range(1, upto + 1)])}
         seconds["coverage"] = time.time() - t0
 
@@ -183,9 +190,12 @@ def _record(result: SuggestResult, views, curves, opts: SuggestOptions, rec, dev
         "version": __version__,
         "capture": str(Path(result.capture).resolve()),
         "annotate": opts.annotate,
+        "objective": opts.objective,
+        "frame_score": views.frame_score([p.index for p in result.picks]),
         "frames": [{"name": p.name, "index": p.index, "gain": p.gain, "coverage": p.coverage} for p in result.picks],
         "coverage": result.coverage,
-        "spread": {"rule": f"spread:{opts.annotate}", "frames": result.spread, "coverage": result.spread_coverage},
+        "spread": {"rule": f"spread:{opts.annotate}", "frames": result.spread, "coverage": result.spread_coverage,
+                   "frame_score": views.frame_score([views.names.index(n) for n in result.spread])},
         "coverage_by_k": curves,
         "surface": {"samples": len(seen), "seen": int(seen.sum()), "mesh_faces": mesh_faces,
                     "reference_density_px": views.reference, "reference_quantile": cfg.reference_quantile},

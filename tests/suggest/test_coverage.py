@@ -117,3 +117,62 @@ def test_every_k_from_one_to_six_names_k_frames(k, tmp_path):
     assert text.startswith("annotate this frame" if k == 1 else f"annotate these {k} frames")
     assert all(f"{i + 1}. {p.name}" in text for i, p in enumerate(picks)) and f"spread:{k} (" in text
     assert result.expand_command() == f"labelsynth expand {tmp_path / 'cap'} --out OUT --geometry {tmp_path / 's'}"
+
+
+def test_frame_objective_shares_and_local_optimum():
+    """The frame objective: a teacher's share of a frame's view, and a choice no single swap improves."""
+    from itertools import combinations
+
+    from labelsynth.suggest import SurfaceViews
+
+    rng = np.random.default_rng(0)
+    quality = np.where(rng.random((8, 200)) < 0.4, rng.random((8, 200)), 0.0).astype(np.float32)
+    views = SurfaceViews([f"f{i}" for i in range(8)], np.zeros((200, 3)), np.zeros((200, 3)), quality, 1.0)
+    shares = views.teacher_shares()
+    assert np.allclose(np.diag(shares), 1.0) and (shares >= 0).all() and (shares <= 1 + 1e-9).all()
+    i, j = 2, 5  # by hand: the share of frame j's view that frame i sees as well
+    assert np.isclose(shares[i, j], np.minimum(quality[i], quality[j]).sum() / quality[j].sum(), rtol=1e-5)
+    for k in (2, 3):
+        picks = views.frame_choice(k)
+        assert len(set(picks)) == k and picks == sorted(picks)
+        score = views.frame_score(picks)
+        for slot in range(k):
+            for c in set(range(8)) - set(picks):
+                assert views.frame_score(picks[:slot] + [c] + picks[slot + 1:]) <= score + 1e-12
+        best = max(views.frame_score(list(s)) for s in combinations(range(8), k))
+        assert score >= best - 0.05  # a local optimum, close to the best subset on this small case
+        ordered = views.ordered(picks)  # the same frames, in greedy surface order, gains adding up
+        assert sorted(p.index for p in ordered) == picks
+        assert sum(p.gain for p in ordered) == pytest.approx(views.coverage(picks))
+    with pytest.raises(LabelsynthError):
+        views.frame_choice(9)
+
+
+def test_frame_objective_gives_each_group_of_frames_a_teacher():
+    """Frames 0-2 see points 0-49 and frames 3-5 points 50-99: one teacher per group, where surface
+    coverage is indifferent to which frames it takes as long as both halves are seen."""
+    from labelsynth.suggest import SurfaceViews
+
+    quality = np.zeros((6, 100), np.float32)
+    quality[:3, :50] = 1.0
+    quality[3:, 50:] = 1.0
+    views = SurfaceViews([f"f{i}" for i in range(6)], np.zeros((100, 3)), np.zeros((100, 3)), quality, 1.0)
+    picks = views.frame_choice(2)
+    assert sum(p < 3 for p in picks) == 1 and views.frame_score(picks) == 1.0
+
+
+def test_frame_objective_prefers_a_teacher_that_sees_a_frame_whole():
+    """Frame 0 sees all 99 points, poorly (0.3); frames 1-3 each see one third, well. Surface
+    coverage takes two of the thirds (each adds more than frame 0); the frame objective takes frame
+    0 and one third: frame 0's view then has one teacher, and frame 0 teaches the other two thirds'
+    frames a little."""
+    from labelsynth.suggest import SurfaceViews
+
+    quality = np.zeros((4, 99), np.float32)
+    quality[0] = 0.3
+    for f in (1, 2, 3):
+        quality[f, 33 * (f - 1):33 * f] = 1.0
+    views = SurfaceViews([f"f{i}" for i in range(4)], np.zeros((99, 3)), np.zeros((99, 3)), quality, 1.0)
+    assert sorted(p.index for p in views.greedy(2)) == [1, 2]
+    choice = views.frame_choice(2)
+    assert 0 in choice and views.frame_score(choice) > views.frame_score([1, 2]) + 0.05
