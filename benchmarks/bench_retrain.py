@@ -23,9 +23,10 @@ whose truth holds the class). Arms (``--arms``; K = expert frames per capture):
     st-raw       ``labelsynth selftrain --labels raw``: M0's masks of every frame as they are (i)
     st-pred      ``--labels predictions``: M0's masks fused by expand (ii); round 2: M1 -> masks -> fuse -> M2
     st-both      ``--labels both``: (ii) with each capture's expert frame (iii); round 2 likewise
+    st-pred-warm st-pred with ``--warm-start``: each round's model starts from the previous one's weights
   varied frames (``synth --phone`` captures: exposure, white balance, blur, noise, JPEG, distance, zoom)
     pa1, pb1, pc1, pd   as a1, b1, c1, d on phone-like captures, tested on phone-like captures
-    pst-raw, pst-pred, pst-both   self-training on phone-like captures (``--phone-self-seeds``) from
+    pst-raw, pst-pred, pst-both, pst-pred-warm   self-training on phone-like captures (``--phone-self-seeds``) from
                  M0 = pa1's model: the weak model whose masks disagree from view to view (it fails
                  where a video's exposure or distance drifts), the paper's main mode
 
@@ -247,18 +248,19 @@ class Bench:
             shutil.rmtree(seg)
         return json.loads(report.read_text())
 
-    def selftrain(self, mode: str, kind: str = PLAIN) -> Path:
+    def selftrain(self, mode: str, kind: str = PLAIN, warm: bool = False) -> Path:
         """``labelsynth selftrain`` from M0 (a1's model; pa1's on phone-like captures) on the self-training
-        captures (views with one expert frame), held out: the validation capture's every frame."""
+        captures (views with one expert frame), held out: the validation capture's every frame;
+        ``warm``: ``--warm-start``."""
         a = self.args
         prefix = "p" if kind == PHONE else ""
-        out = self.root / "selftrain" / (f"{kind}-{mode}" if kind == PHONE else mode)
+        out = self.root / "selftrain" / _selftrain_folder(kind, mode, warm)
         m0 = self.root / "models" / f"{prefix}a1" / "model.onnx"
         if not m0.is_file():
             self.run_arm(f"{prefix}a1")
         rounds = {"raw": 1, "predictions": a.rounds, "both": a.both_rounds}[mode]
         done = out / "selftrain.json"
-        arm = prefix + "st-" + {"predictions": "pred"}.get(mode, mode)
+        arm = prefix + "st-" + {"predictions": "pred"}.get(mode, mode) + ("-warm" if warm else "")
         if done.is_file() and len(json.loads(done.read_text()).get("rounds", [])) == rounds + 1 \
                 and not a.retrain_arm(arm):
             return out
@@ -273,9 +275,11 @@ class Bench:
                "--eval-every", str(max(1, a.steps // 10))]
         for o in a.overrides:
             cmd += ["--set", o]
+        if warm:
+            cmd.append("--warm-start")
         if a.retrain_arm(arm):
             cmd.append("--force")
-        self.cli(cmd, f"selftrain-{prefix}{mode}")
+        self.cli(cmd, f"selftrain-{prefix}{mode}{'-warm' if warm else ''}")
         return out
 
     # --- arms ---------------------------------------------------------------------------------
@@ -339,8 +343,9 @@ class Bench:
                                           for s in train_seeds])
             return [self._row(arm, regime, what, kind, self.root / "models" / arm, report, quality, k=k)]
         if name.startswith("st-"):
-            mode = {"raw": "raw", "pred": "predictions", "both": "both"}[name[3:]]
-            out = self.selftrain(mode, kind)
+            short, warm = name[3:].removesuffix("-warm"), name.endswith("-warm")
+            mode = {"raw": "raw", "pred": "predictions", "both": "both"}[short]
+            out = self.selftrain(mode, kind, warm)
             state = json.loads((out / "selftrain.json").read_text())
             names = [Path(c).name for c in state["settings"]["captures"]]
             rows = []
@@ -356,6 +361,8 @@ class Bench:
                 what = {"raw": f"{source}'s masks of every frame, raw",
                         "predictions": f"{source}'s masks fused by expand --labels predictions",
                         "both": f"{source}'s masks + 1 expert frame fused by expand --labels both"}[mode]
+                if warm:
+                    what += f", the model started from {source}'s weights"
                 regime = "self-training" + (" (varied frames)" if kind == PHONE else "")
                 rows.append(self._row(arm, regime, what, kind, here / "model", report, quality, round=r))
             return rows
@@ -366,10 +373,16 @@ def _model_dir(root: Path, row: dict) -> Path:
     if "model_dir" in row:
         return Path(row["model_dir"])
     if row["arm"].lstrip("p").startswith("st-"):
-        mode = {"raw": "raw", "pred": "predictions", "both": "both"}[row["arm"].split("-", 1)[1]]
-        folder = f"{PHONE}-{mode}" if row["arm"].startswith("p") else mode
+        short = row["arm"].split("-", 1)[1]
+        mode = {"raw": "raw", "pred": "predictions", "both": "both"}[short.removesuffix("-warm")]
+        folder = _selftrain_folder(PHONE if row["arm"].startswith("p") else PLAIN, mode, short.endswith("-warm"))
         return root / "selftrain" / folder / f"round{row['round']}" / "model"
     return root / "models" / row["arm"]
+
+
+def _selftrain_folder(kind: str, mode: str, warm: bool) -> str:
+    """OUT/selftrain/<this>: a self-training arm's loop."""
+    return (f"{kind}-{mode}" if kind == PHONE else mode) + ("-warm" if warm else "")
 
 
 def curve(root: Path, row: dict, present: list[str]) -> list[dict]:
@@ -483,11 +496,12 @@ def targets(by: dict[str, dict]) -> list[str]:
                 out.append(f"self-training ({where}): the ceiling ({ceiling}, exact truth of every frame) is only "
                            f"{room:+.3f} wound bed above (i): a +0.03 gain would put (ii) "
                            f"above it, so that part of the target cannot be met with this M0")
-        for mode in ("pred", "both"):
+        for mode in ("pred", "both", "pred-warm"):
             if f"{p}st-{mode} r1" in by and f"{p}st-{mode} r2" in by:
                 dw = wb(f"{p}st-{mode} r2") - wb(f"{p}st-{mode} r1")
                 dt = tm(f"{p}st-{mode} r2") - tm(f"{p}st-{mode} r1")
-                out.append(f"self-training ({where}, {'ii' if mode == 'pred' else 'iii'}): round 2 - round 1 wound bed "
+                label = {"pred": "ii", "both": "iii", "pred-warm": "ii, warm start"}[mode]
+                out.append(f"self-training ({where}, {label}): round 2 - round 1 wound bed "
                            f"{dw:+.3f}, tissue mean {dt:+.3f} (target: not below: "
                            f"{'met' if min(dw, dt) >= 0 else 'NOT met'})")
     return out

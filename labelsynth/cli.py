@@ -435,6 +435,7 @@ def train(
     ),
     eval_every: Optional[int] = typer.Option(None, "--eval-every", min=1, help="Validate and checkpoint every N steps (default: steps/10)."),
     resume: bool = typer.Option(False, "--resume", help="Continue from OUT/checkpoint.pt up to --steps."),
+    init: Optional[Path] = typer.Option(None, "--init", help="Start from the weights of another run (its MODEL_DIR or checkpoint.pt; its arch, encoder and input size), with a fresh optimiser and schedule."),
     force: bool = typer.Option(False, help="Replace the outputs of an earlier run in OUT."),
     device: str = typer.Option("auto", help="auto | cpu | cuda"),
     seed: int = typer.Option(0, help="Random seed."),
@@ -448,7 +449,7 @@ def train(
         min_confidence=min_confidence, confidence_weight=confidence_weight, expert_weight=expert_weight,
         class_weights=class_weights, dice_weight=dice_weight, only_annotated=only_annotated,
         val_captures=[] if val_captures is None else val_captures.split(","), val_split=val_split, eval_every=eval_every,
-        device=device, seed=seed, workers=workers,
+        device=device, seed=seed, workers=workers, init=None if init is None else str(init),
     )
     result = run_train(sources, out, cfg, force=force, resume=resume)
     typer.echo(result.summary())
@@ -480,6 +481,7 @@ def selftrain(
     eval_every: Optional[int] = typer.Option(None, "--eval-every", min=1, help="As for train."),
     device: str = typer.Option("auto", help="auto | cpu | cuda (segment, expand and train)."),
     seed: int = typer.Option(0, help="Random seed of expand and train."),
+    warm_start: bool = typer.Option(False, "--warm-start", help="Each round's model starts from the previous round's weights (round 1 from --model's checkpoint.pt beside it) instead of from scratch."),
     force: bool = typer.Option(False, help="Start over in OUT (else a rerun with the same settings continues)."),
 ) -> None:
     """The self-training loop: a model's masks of new captures -> expand -> a new model, round after round."""
@@ -492,7 +494,7 @@ def selftrain(
                        min_confidence=min_confidence, confidence_weight=confidence_weight, expert_weight=expert_weight,
                        eval_every=eval_every, seed=seed)
     cfg = SelfTrainConfig(rounds=rounds, labels=labels, recipe=recipe, overrides=set_, seed=seed, device=device,
-                          train=tcfg)
+                          train=tcfg, warm_start=warm_start)
     result = run_selftrain(captures, model, out, cfg, holdout=holdout, also=also, force=force)
     Console(width=None if sys.stdout.isatty() else 200).print(result.table(), markup=False, highlight=False)
     typer.echo(result.summary())

@@ -62,12 +62,12 @@ def save_checkpoint(path: Path, model: torch.nn.Module, optimizer: torch.optim.O
     return save_described(path, _KEY, description, tensors)
 
 
-def load_checkpoint(path: Path) -> dict[str, Any]:
+def load_checkpoint(path: Path, remedy: str = _REMEDY) -> dict[str, Any]:
     """checkpoint.pt as ``{"model", "optimizer" (state dicts), "step", "config", "classes"
     (ClassMap), "history"}``; anything else (tampered, truncated, foreign, newer) is one
-    ``TrainError`` line naming the file, and nothing in it runs."""
+    ``TrainError`` line naming the file (and ``remedy``), and nothing in it runs."""
     path = Path(path)
-    state = load_plain(path, kind=_KIND, remedy=_REMEDY, error=TrainError)
+    state = load_plain(path, kind=_KIND, remedy=remedy, error=TrainError)
     if isinstance(state, dict) and _KEY in state:
         meta, tensors = read_described(state, _KEY, path, kind=_KIND, error=TrainError)
         version = meta.get("version")

@@ -28,7 +28,7 @@ from ..errors import LabelsynthError
 from ..metrics import Counts
 from ..outdir import atomic_file, check_writable, interruptible, write_text_atomic
 from ..progress import console, make_progress
-from .checkpoint import load_checkpoint, save_checkpoint
+from .checkpoint import CHECKPOINT_FILE, load_checkpoint, save_checkpoint
 from .contract import INPUT_NAME, OUTPUT_NAME, format_input_size, normalize, parse_input_size
 from .data import (VAL_SPLITS, FrameDataset, Split, TrainError, load_sources, make_target, parse_class_weights,
                    require_source, split_by_capture)
@@ -70,6 +70,9 @@ class TrainConfig:
     device: str = "auto"
     seed: int = 0
     workers: int = 0
+    # a MODEL_DIR (or its checkpoint.pt) whose weights start this run (its arch, encoder and input size are
+    # adopted; the optimiser, the schedule and the step start afresh): a warm start, e.g. selftrain's next round
+    init: str | None = None
 
     def check(self) -> None:
         """Every value of the run, before any source is read: one ``TrainError`` line naming the option."""
@@ -91,7 +94,7 @@ class TrainConfig:
             self.workers = whole_number(self.workers, "--workers", 0, MAX_WORKERS)
             self.device = DeviceChoice.parse(self.device, "--device").value
             for option, name in (("--arch", "arch"), ("--encoder", "encoder"), ("--input-size", "input_size"),
-                                 ("--class-weights", "class_weights")):
+                                 ("--class-weights", "class_weights"), ("--init", "init")):
                 given_text(getattr(self, name), option)
             if self.arch is not None and self.arch not in ARCHS:
                 raise OptionError(f"--arch must be one of {', '.join(ARCHS)}, not {self.arch!r}")
@@ -166,16 +169,26 @@ def make_out(out: Path, *, resume: bool) -> None:
     out.mkdir(parents=True, exist_ok=True)
 
 
-def adopt_checkpoint_model(cfg: TrainConfig, saved: dict[str, Any], path: Path) -> None:
-    """``--resume`` continues the checkpoint's model: its arch, encoder and input size fill in
-    what was not given, and an ``--arch``/``--encoder``/``--input-size`` that differs is refused
-    (a silently different model would not load its weights, or would train at another size)."""
+def adopt_checkpoint_model(cfg: TrainConfig, saved: dict[str, Any], path: Path, how: str = "--resume cannot continue it") -> None:
+    """``--resume`` (and ``--init``) continue the checkpoint's model: its arch, encoder and input
+    size fill in what was not given, and an ``--arch``/``--encoder``/``--input-size`` that differs
+    is refused (a silently different model would not load its weights, or would train at another size)."""
     for name, option in (("arch", "--arch"), ("encoder", "--encoder"), ("input_size", "--input-size")):
         mine, theirs = getattr(cfg, name), saved.get(name)
         if mine is not None and mine != theirs:
             was = f"{option} {theirs}" if theirs is not None else "the frames' own size"
-            raise TrainError(f"{path}: was trained with {was}; --resume cannot continue it with {option} {mine}")
+            raise TrainError(f"{path}: was trained with {was}; {how} with {option} {mine}")
         setattr(cfg, name, theirs)
+
+
+def init_checkpoint(init: str | Path) -> Path:
+    """``--init``'s checkpoint.pt: the path itself or MODEL_DIR/checkpoint.pt (one line if absent)."""
+    path = Path(init)
+    path = path / CHECKPOINT_FILE if path.is_dir() else path
+    if not path.is_file():
+        raise TrainError(f"--init {init}: no {CHECKPOINT_FILE} there (a MODEL_DIR written by labelsynth train, "
+                         "or its checkpoint.pt)")
+    return path
 
 
 # --- pieces of the loop ------------------------------------------------------------------------
@@ -337,13 +350,23 @@ def _train(sources: list[str | Path], out: str | Path, cfg: TrainConfig | None, 
     check_out(out, sources, force=force, resume=resume)
     state = load_checkpoint(out / "checkpoint.pt") if resume else None
     if state is not None:  # what the model is comes from the checkpoint; asking for another is an error
+        if cfg.init is not None:
+            raise TrainError(f"--init {cfg.init} with --resume: a resumed run continues {out / 'checkpoint.pt'}; "
+                             "give one of them")
         adopt_checkpoint_model(cfg, state["config"], out / "checkpoint.pt")
+    start = None
+    if cfg.init is not None:
+        start_path = init_checkpoint(cfg.init)
+        start = load_checkpoint(start_path, remedy="give --init a MODEL_DIR written by labelsynth train")
+        adopt_checkpoint_model(cfg, start["config"], start_path, "--init cannot start from it")
     cfg.arch = cfg.arch or "segformer"
     cfg.encoder = resolve_encoder(cfg.arch, cfg.encoder)
 
     loaded, classes = load_sources(list(sources), cfg.only_annotated)
     if state is not None and state["classes"].to_json() != classes.to_json():
         raise TrainError(f"{out / 'checkpoint.pt'}: its class table differs from the sources' ({loaded[0].path})")
+    if start is not None and start["classes"].to_json() != classes.to_json():
+        raise TrainError(f"--init {cfg.init}: its class table differs from the sources' ({loaded[0].path})")
     class_weight = parse_class_weights(cfg.class_weights, classes)
     split = split_by_capture(loaded, cfg.val_captures, cfg.val_split)
     if not split.train:
@@ -356,6 +379,13 @@ def _train(sources: list[str | Path], out: str | Path, cfg: TrainConfig | None, 
     model = build_model(cfg.arch, cfg.encoder, classes.num_classes).to(device)
     optimizer = torch.optim.AdamW(model.parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay, **optimiser_options(device))
     step, history, resumed_from = 0, [], None
+    if start is not None:
+        try:
+            model.load_state_dict(start["model"])
+        except (RuntimeError, ValueError, KeyError, TypeError) as exc:
+            raise TrainError(f"--init {cfg.init}: does not fit a {cfg.arch}/{cfg.encoder} model "
+                             f"({str(exc).splitlines()[0][:200] if str(exc) else type(exc).__name__})") from None
+        say(f"starting from the weights of {init_checkpoint(cfg.init)}")
     if state is not None:
         try:
             model.load_state_dict(state["model"])

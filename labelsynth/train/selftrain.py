@@ -11,7 +11,7 @@ OUT/
   round<R>/predictions/<C>/ the previous model's masks of capture C (``segment``)
   round<R>/captures/<C>/    C with those masks as predictions/ (``capture.view``: C itself is never written)
   round<R>/expanded/<C>/    ``expand`` of that view (labels.h5); ``raw``: round<R>/labels/<C>.h5 instead
-  round<R>/model/           ``train``: model.onnx, train.json, curves.png
+  round<R>/model/           ``train``: model.onnx, train.json, curves.png (``warm_start``: from round R-1's weights)
   round<R>/holdout/<H>/     the round's model's masks of held-out capture H, scored against its annotations/
 
 Every step's output is complete or absent (``outdir.building``, ``train``'s atomic files), so a
@@ -37,6 +37,7 @@ from ..outdir import check_apart, check_writable, write_text_atomic
 from ..progress import console
 from ..rundir import LABELS_FILE
 from .data import TrainError, load_sources
+from .checkpoint import CHECKPOINT_FILE
 from .loop import TrainConfig
 
 MODES = ("predictions", "both", "raw")
@@ -66,7 +67,10 @@ class SelfTrainConfig:
     device: str = "auto"
     """auto | cpu | cuda, for segment, expand and train."""
     train: TrainConfig = field(default_factory=TrainConfig)
-    """Every round trains a new model from scratch with these settings."""
+    """Every round trains a new model with these settings."""
+    warm_start: bool = False
+    """Round R's model starts from round R-1's weights (round 1 from the checkpoint.pt beside the
+    round-0 model), with a fresh optimiser and schedule; else from scratch."""
 
     def check(self) -> None:
         """Every value, and the recipe expand will use (file, keys, types, ranges) and the device,
@@ -304,6 +308,9 @@ def selftrain(captures: list[str | Path], model: str | Path, out: str | Path, cf
     _check_out(out, [*(("the capture", c) for c in captures), *(("the --holdout capture", h) for h in holdout),
                      *(("the --also source", a) for a in also)])
     OnnxSegmenter(model, cfg.device)  # opened now: a file that is not a segmenter fails before OUT exists
+    if cfg.warm_start and not (model.parent / CHECKPOINT_FILE).is_file():
+        raise SelfTrainError(f"--model {model}: --warm-start needs the {CHECKPOINT_FILE} train wrote beside it "
+                             f"(none in {model.parent})")
     if also:  # every --also source read and checked now (train reads them again each round)
         try:
             _, also_classes = load_sources(also)
@@ -379,6 +386,8 @@ def selftrain(captures: list[str | Path], model: str | Path, out: str | Path, cf
             sources.append(h5)
         model_dir = here / "model"
         tcfg = TrainConfig(**{**asdict(cfg.train), "device": cfg.device})
+        if cfg.warm_start:
+            tcfg.init = str(Path(current).parent / CHECKPOINT_FILE)
         if holdout:
             tcfg.val_captures = [str(h) for h in holdout]
         if not _model_done(model_dir, tcfg.steps):

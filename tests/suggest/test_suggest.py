@@ -90,6 +90,32 @@ def test_expand_reuses_the_suggested_geometry(suggested, tmp_path):
     assert not (tmp_path / "seed1").exists() and not (tmp_path / "seed1.partial").exists()
 
 
+def test_suggest_by_the_frame_objective(suggested, tmp_path):
+    """--objective frames: the named frames are the frame objective's choice on the fitted surface,
+    in greedy surface order, and suggest.json records the objective and both scores."""
+    from labelsynth.capture import load_capture
+    from labelsynth.render.renderer import FieldRenderer
+    from labelsynth.suggest import CoverageConfig, surface_views
+
+    capture = suggested[0]
+    out = tmp_path / "frames"
+    res = CliRunner().invoke(app, ["suggest", str(capture), "--annotate", "2", "--objective", "frames", "--out", str(out),
+                                   "--recipe", "fast", "--device", "cpu", *SET])
+    assert res.exit_code == 0, res.output
+    data = json.loads((out / "suggest.json").read_text())
+    assert data["objective"] == "frames" and len(data["coverage_by_k"]["suggested"]) == 6
+    cap = load_capture(capture)
+    view = FieldRenderer(load_field(RunFolder(out).field_path, torch.device("cpu")))
+    views = surface_views(view.mesh(), cap.unit_cameras(), cap.names, CoverageConfig(), caster=view.caster(),
+                          progress=False)
+    choice = views.frame_choice(2)
+    assert sorted(f["index"] for f in data["frames"]) == choice
+    assert data["frame_score"] == pytest.approx(views.frame_score(choice))
+    spread = [cap.names.index(n) for n in data["spread"]["frames"]]
+    assert data["spread"]["frame_score"] == pytest.approx(views.frame_score(spread))
+    assert data["coverage"] == pytest.approx(views.coverage(choice))
+
+
 @pytest.fixture(scope="module")
 def small(tmp_path_factory):
     capture, _ = make_patch_capture(tmp_path_factory.mktemp("small"), frames=4, size=24)
@@ -103,6 +129,7 @@ BAD = [
     (["--annotate", "2", "--out", "{capture}/suggest"], "--out {capture}/suggest: inside the capture {capture}"),
     (["--annotate", "2", "--seed", "-1"], "--seed must be a whole number in 0..4294967295, not -1"),
     (["--annotate", "2", "--device", "tpu"], "--device must be one of auto, cpu, cuda, not 'tpu'"),
+    (["--annotate", "2", "--objective", "pixels"], "--objective must be one of surface, frames, not 'pixels'"),
     (["--annotate", "2", "--recipe", "nope"], "--recipe 'nope': unknown recipe"),
     (["--annotate", "2", "--set", "geometry.iterations=-5"], "fast.yaml.geometry.iterations: -5 is not >= 1"),
     (["--annotate", "2", "--out", "{full}"], "{full}: output folder exists and is not empty"),

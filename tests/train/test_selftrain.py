@@ -158,6 +158,25 @@ def test_raw_trains_on_the_masks_themselves(data, tmp_path, monkeypatch):
     assert report["split"]["train_frames"] == 7 and report["split"]["val_frames"] == 0
 
 
+def test_warm_start_reads_the_previous_rounds_weights(data, tmp_path, monkeypatch):
+    """--warm-start: round 1 trains from the checkpoint beside M0, round 2 from round 1's."""
+    from labelsynth.train import train
+
+    m0_dir = tmp_path / "m0"
+    train([data["cap"]], m0_dir, TrainConfig(**TINY_TRAIN, only_annotated=True), progress=False, log=lambda m: None)
+    out = tmp_path / "warm"
+    cfg = SelfTrainConfig(rounds=2, labels="raw", device="cpu", warm_start=True,
+                          train=TrainConfig(**TINY_TRAIN, val_split="none"))
+    selftrain([data["cap2"]], m0_dir / "model.onnx", out, cfg, progress=False, log=lambda m: None)
+    for r, start in ((1, m0_dir), (2, out / "round1" / "model")):
+        report = json.loads((out / f"round{r}" / "model" / "train.json").read_text())
+        assert report["arguments"]["init"] == str(start / "checkpoint.pt")
+    res = CliRunner().invoke(app, ["selftrain", str(data["cap"]), "--model", str(data["m0"]), "--out",
+                                   str(tmp_path / "o4"), "--warm-start"])
+    assert res.exit_code == 2 and "--warm-start needs the checkpoint.pt" in res.output, res.output
+    assert not (tmp_path / "o4").exists()
+
+
 def test_bad_input_is_one_line(data, tmp_path):
     runner = CliRunner()
     base = ["selftrain", str(data["cap"]), "--model", str(data["m0"]), "--out", str(tmp_path / "o")]

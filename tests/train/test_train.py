@@ -140,6 +140,34 @@ def test_resume_continues_the_step_count(sources, tmp_path):
     assert same.exit_code == 0, same.output  # naming the checkpoint's own model is fine
 
 
+def test_init_starts_from_another_runs_weights(sources, tmp_path):
+    """--init: the new run's model starts from the given run's weights (a near-zero learning rate
+    keeps them), with its own step count; a missing, resumed or differently shaped start is one line."""
+    first = tmp_path / "first"
+    assert _invoke(sources["cap0"], sources["cap1"], "--out", first, *TINY).exit_code == 0
+    start = load_checkpoint(first / "checkpoint.pt")["model"]
+    frozen = ["--steps", "1", "--lr", "1e-12", "--batch-size", "2", "--crop", "32", "--device", "cpu", "--seed", "7"]
+    warm = _invoke(sources["cap0"], sources["cap1"], "--out", tmp_path / "warm", *frozen, "--init", first)
+    assert warm.exit_code == 0, warm.output
+    assert f"startingfromtheweightsof{first / 'checkpoint.pt'}" in "".join(warm.output.split())  # the console wraps
+    cold = _invoke(sources["cap0"], sources["cap1"], "--out", tmp_path / "cold", *frozen)
+    assert cold.exit_code == 0, cold.output
+    warm_w = load_checkpoint(tmp_path / "warm" / "checkpoint.pt")["model"]
+    cold_w = load_checkpoint(tmp_path / "cold" / "checkpoint.pt")["model"]
+    weights = [k for k in start if "running_" not in k and "num_batches" not in k]  # batch norm statistics move anyway
+    assert all(torch.allclose(warm_w[k], start[k], atol=1e-6) for k in weights)
+    assert not all(torch.allclose(cold_w[k], start[k], atol=1e-6) for k in weights)  # seed 7 from scratch: another model
+    report = json.loads((tmp_path / "warm" / "train.json").read_text())
+    assert report["step"] == 1 and report["arguments"]["init"] == str(first)
+    _one_line_error(_invoke(sources["cap0"], "--out", tmp_path / "x", *TINY, "--init", tmp_path / "nope"),
+                    f"--init {tmp_path / 'nope'}", "no checkpoint.pt")
+    _one_line_error(_invoke(sources["cap0"], "--out", tmp_path / "y", *TINY, "--init", first, "--arch", "unet"),
+                    str(first / "checkpoint.pt"), "--init cannot start from it with --arch unet")
+    _one_line_error(_invoke(sources["cap0"], sources["cap1"], "--out", first, *TINY[2:], "--steps", "3", "--resume",
+                            "--init", first), "--init", "--resume")
+    assert not (tmp_path / "x").exists() and not (tmp_path / "y").exists()
+
+
 def test_interrupt_saves_a_checkpoint_that_resumes(sources, tmp_path, monkeypatch):
     from labelsynth.train import loop
 
