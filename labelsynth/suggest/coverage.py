@@ -99,19 +99,12 @@ class SurfaceViews:
         pool = len(self.names) if among is None else len(among)
         if not 1 <= k <= pool:
             raise LabelsynthError(f"cannot choose {k} of {pool} frames")
+        total = self.total if self.total > 0 else 1.0
         chosen = list(first or [])
-        best = self.quality[chosen].max(axis=0) if chosen else np.zeros(self.quality.shape[1], np.float32)
         picks: list[Pick] = []
-        for _ in range(k):
-            gains = np.maximum(self.quality, best[None]).sum(axis=1, dtype=np.float64) - best.sum(dtype=np.float64)
-            gains[chosen] = -np.inf
-            if among is not None:
-                gains[np.setdiff1d(np.arange(len(gains)), among)] = -np.inf
-            i = int(np.argmax(gains))
+        for i, gain in greedy_facility(self.quality, k, chosen=first or [], among=among):
             chosen.append(i)
-            best = np.maximum(best, self.quality[i])
-            total = self.total if self.total > 0 else 1.0
-            picks.append(Pick(self.names[i], i, float(max(gains[i], 0.0) / total), self.coverage(chosen)))
+            picks.append(Pick(self.names[i], i, float(max(gain, 0.0) / total), self.coverage(chosen)))
         return picks
 
     def teacher_shares(self) -> np.ndarray:
@@ -132,13 +125,7 @@ class SurfaceViews:
         if not 1 <= k <= len(self.names):
             raise LabelsynthError(f"cannot choose {k} of {len(self.names)} frames")
         shares = self.teacher_shares()
-        chosen: list[int] = []
-        best = np.zeros(shares.shape[1])
-        for _ in range(k):
-            gains = np.maximum(shares, best[None]).sum(axis=1) - best.sum()
-            gains[chosen] = -np.inf
-            chosen.append(int(np.argmax(gains)))
-            best = np.maximum(best, shares[chosen[-1]])
+        chosen = [i for i, _ in greedy_facility(shares, k)]
         score, improved = self.frame_score(chosen), True
         while improved:
             improved = False
@@ -160,6 +147,26 @@ class SurfaceViews:
     def curve(self, orders: list[list[int]]) -> list[float]:
         """Coverage of each index list (e.g. spread:k for k = 1..6)."""
         return [self.coverage(o) for o in orders]
+
+
+def greedy_facility(values: np.ndarray, k: int, *, chosen: list[int] = (), among: list[int] | None = None
+                    ) -> list[tuple[int, float]]:
+    """Greedy maximisation of sum_columns max_(chosen rows) ``values`` (a facility location): ``k``
+    rows, each the one of largest gain over ``chosen`` and those before it (ties: the earlier row),
+    from ``among`` (default: every row). Returns (row, gain) in order of choice."""
+    chosen = list(chosen)
+    best = values[chosen].max(axis=0) if chosen else np.zeros(values.shape[1], values.dtype)
+    out: list[tuple[int, float]] = []
+    for _ in range(k):
+        gains = np.maximum(values, best[None]).sum(axis=1, dtype=np.float64) - best.sum(dtype=np.float64)
+        gains[chosen] = -np.inf
+        if among is not None:
+            gains[np.setdiff1d(np.arange(len(gains)), among)] = -np.inf
+        i = int(np.argmax(gains))
+        chosen.append(i)
+        best = np.maximum(best, values[i])
+        out.append((i, float(gains[i])))
+    return out
 
 
 def sample_surface(mesh: trimesh.Trimesh, cfg: CoverageConfig) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
