@@ -30,6 +30,11 @@ Everything is cached under --work (a finished suggest, expand or score is not re
     nice -n 5 python benchmarks/bench_suggest.py --work /tmp/bench_suggest --recipe fast \\
         --frames 30 --width 320 --height 240 --random 6
     nice -n 5 python benchmarks/bench_suggest.py --work /tmp/bench_suggest --timing-only --timing-suggest
+
+Over several fits (one --work per --fit-seed), then one table of mean ± sd against spread:
+
+    for s in 0 1 2; do python benchmarks/bench_suggest.py --work W/s$s --fit-seed $s ...; done
+    python benchmarks/bench_suggest.py --combine W/s0/bench_suggest.json W/s1/bench_suggest.json W/s2/bench_suggest.json
 """
 
 from __future__ import annotations
@@ -299,9 +304,33 @@ def _diff(a: dict, b: dict) -> str:
     return f"{a['wound_bed'] - b['wound_bed']:+.3f} / {'-' if dt is None else f'{dt:+.3f}'}"
 
 
+def combine(summaries: list[Path]) -> str:
+    """One table over several runs' bench_suggest.json (e.g. one --work per --fit-seed): per case and
+    K, each choice's wound bed and tissue mean in every run and its difference from spread as
+    mean ± sd over the runs."""
+    runs = [json.loads(Path(p).read_text()) for p in summaries]
+    cases = [c["case"] for c in runs[0]["cases"]]
+    lines = [f"over {len(runs)} runs ({', '.join(str(p) for p in summaries)})",
+             "| case | K | choice | wound bed (each run) | − spread, mean ± sd | tissue mean (each run) | − spread, mean ± sd |",
+             "|---|---|---|---|---|---|---|"]
+    for name in cases:
+        rows = [next(c for c in r["cases"] if c["case"] == name)["by_k"] for r in runs]
+        for k in rows[0]:
+            for choice in ("suggested", "frames", "spread"):
+                cells = []
+                for key in ("wound_bed", "tissue_mean"):
+                    vals = [r[k][choice][key] for r in rows]
+                    diffs = [r[k][choice][key] - r[k]["spread"][key] for r in rows if r[k][choice][key] is not None]
+                    cells.append(" ".join(_f(v) for v in vals))
+                    cells.append("" if choice == "spread" or not diffs else
+                                 f"{np.mean(diffs):+.3f} ± {np.std(diffs, ddof=1) if len(diffs) > 1 else 0.0:.3f}")
+                lines.append(f"| {name} | {k} | {choice} | " + " | ".join(cells) + " |")
+    return "\n".join(lines)
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--work", type=Path, required=True)
+    ap.add_argument("--work", type=Path, default=None, help="where cases, fits, expands and bench_suggest.json go")
     ap.add_argument("--cases", default="wound-a,wound-b,around,uneven,lego")
     ap.add_argument("--ks", default="2,3,4")
     ap.add_argument("--random", type=int, default=10, help="random K-subsets per K (the worst is reported)")
@@ -326,8 +355,15 @@ def main() -> None:
     ap.add_argument("--json", default=None, help="the summary's file name under --work (default bench_suggest.json, "
                     "bench_suggest_timing.json with --timing-only): several runs of disjoint --cases can share --work")
     ap.add_argument("--timing-suggest", action="store_true", help="with the timing: also suggest --annotate 4 on that wound")
+    ap.add_argument("--combine", type=Path, nargs="+", default=None, metavar="SUMMARY",
+                    help="only print one table over these runs' bench_suggest.json (mean ± sd of each choice minus spread)")
     args = ap.parse_args()
+    if args.combine:
+        print(combine(args.combine))
+        return
     args.ks = [int(k) for k in args.ks.split(",")]
+    if args.work is None:
+        ap.error("--work is required (unless --combine)")
     args.only = [c for c in args.only.split(",") if c]
     args.work.mkdir(parents=True, exist_ok=True)
     summary: dict = {"settings": {k: (str(v) if isinstance(v, Path) else v) for k, v in vars(args).items()}}

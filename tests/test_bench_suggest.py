@@ -1,12 +1,15 @@
 """benchmarks/bench_suggest.py end to end on a tiny all-around capture (the numbers mean nothing):
-suggest fits the geometry with --fit-seed, every choice (the frame objective's too) expands from it with that seed, the table
-has the case's row, and a rerun with another seed redoes the cached fit instead of reusing it."""
+suggest fits the geometry with --fit-seed, every choice (the frame objective's too) expands from it
+with that seed, the table has the case's row, a rerun with another seed redoes the cached fit
+instead of reusing it, and --combine tabulates both runs."""
 
 from __future__ import annotations
 
 import json
 import subprocess
 from pathlib import Path
+
+import numpy as np
 
 from .conftest import TINY_EXPAND, run_benchmark
 
@@ -28,7 +31,19 @@ def test_fit_seed_reaches_suggest_and_every_expand(tmp_path: Path) -> None:
     row = summary["cases"][0]["by_k"]["2"]
     assert row["suggested"]["scored"] == row["frames"]["scored"] == row["spread"]["scored"] == 4  # 6 less the 2 chosen
 
+    first = tmp_path / "seed3.json"
+    first.write_text((tmp_path / "bench_suggest.json").read_text())
     res = _bench(tmp_path, 4)  # another seed on the same --work: the fit is redone, not reused
     assert "suggest fitted the geometry" in res.stdout + res.stderr
     assert json.loads((tmp_path / "around" / "suggest" / "suggest.json").read_text())["seed"] == 4
     assert json.loads((tmp_path / "around" / "K2" / "spread" / "run.json").read_text())["seed"] == 4
+
+    # --combine: one row per case, K and choice over both runs, the differences from spread as mean ± sd
+    both = [first, tmp_path / "bench_suggest.json"]
+    table = run_benchmark("bench_suggest.py", ["--combine", *map(str, both)]).stdout
+    runs = [json.loads(p.read_text())["cases"][0]["by_k"]["2"] for p in both]
+    diffs = [r["frames"]["wound_bed"] - r["spread"]["wound_bed"] for r in runs]
+    row = next(line for line in table.splitlines() if line.startswith("| around | 2 | frames |"))
+    cells = [c.strip() for c in row.strip("|").split("|")]
+    assert cells[3] == " ".join(f"{r['frames']['wound_bed']:.3f}" for r in runs)
+    assert cells[4] == f"{np.mean(diffs):+.3f} ± {np.std(diffs, ddof=1):.3f}"
