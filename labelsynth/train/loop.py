@@ -385,7 +385,7 @@ def _train(sources: list[str | Path], out: str | Path, cfg: TrainConfig | None, 
         except (RuntimeError, ValueError, KeyError, TypeError) as exc:
             raise TrainError(f"--init {cfg.init}: does not fit a {cfg.arch}/{cfg.encoder} model "
                              f"({str(exc).splitlines()[0][:200] if str(exc) else type(exc).__name__})") from None
-        say(f"starting from the weights of {init_checkpoint(cfg.init)}")
+        say(f"starting from the weights of {start_path}")
     if state is not None:
         try:
             model.load_state_dict(state["model"])
