@@ -24,9 +24,10 @@ whose truth holds the class). Arms (``--arms``; K = expert frames per capture):
     st-pred      ``--labels predictions``: M0's masks fused by expand (ii); round 2: M1 -> masks -> fuse -> M2
     st-both      ``--labels both``: (ii) with each capture's expert frame (iii); round 2 likewise
     st-pred-warm st-pred with ``--warm-start``: each round's model starts from the previous one's weights
+    st-pred-acc  st-pred with ``--accumulate``: round 2 trains on round 1's fused labels and its own
   varied frames (``synth --phone`` captures: exposure, white balance, blur, noise, JPEG, distance, zoom)
     pa1, pb1, pc1, pd   as a1, b1, c1, d on phone-like captures, tested on phone-like captures
-    pst-raw, pst-pred, pst-both, pst-pred-warm   self-training on phone-like captures (``--phone-self-seeds``) from
+    pst-raw, pst-pred, pst-both, pst-pred-warm, pst-pred-acc   self-training on phone-like captures (``--phone-self-seeds``) from
                  M0 = pa1's model: the weak model whose masks disagree from view to view (it fails
                  where a video's exposure or distance drifts), the paper's main mode
 
@@ -56,6 +57,9 @@ import numpy as np
 
 TISSUES = ("granulation", "slough", "necrotic", "epithelial", "unknown")
 PLAIN, PHONE = "plain", "phone"
+VARIANTS = {"warm": ("--warm-start", "the model started from {source}'s weights"),
+            "acc": ("--accumulate", "plus every earlier round's fused labels")}
+"""Self-training arm suffixes (st-pred-warm, ...): the selftrain option, and what the table says of it."""
 
 
 def _ints(text: str) -> list[int]:
@@ -248,19 +252,19 @@ class Bench:
             shutil.rmtree(seg)
         return json.loads(report.read_text())
 
-    def selftrain(self, mode: str, kind: str = PLAIN, warm: bool = False) -> Path:
+    def selftrain(self, mode: str, kind: str = PLAIN, variant: str = "") -> Path:
         """``labelsynth selftrain`` from M0 (a1's model; pa1's on phone-like captures) on the self-training
         captures (views with one expert frame), held out: the validation capture's every frame;
-        ``warm``: ``--warm-start``."""
+        ``variant``: a key of ``VARIANTS`` (its selftrain option) or ""."""
         a = self.args
         prefix = "p" if kind == PHONE else ""
-        out = self.root / "selftrain" / _selftrain_folder(kind, mode, warm)
+        out = self.root / "selftrain" / _selftrain_folder(kind, mode, variant)
         m0 = self.root / "models" / f"{prefix}a1" / "model.onnx"
         if not m0.is_file():
             self.run_arm(f"{prefix}a1")
         rounds = {"raw": 1, "predictions": a.rounds, "both": a.both_rounds}[mode]
         done = out / "selftrain.json"
-        arm = prefix + "st-" + {"predictions": "pred"}.get(mode, mode) + ("-warm" if warm else "")
+        arm = prefix + "st-" + {"predictions": "pred"}.get(mode, mode) + (f"-{variant}" if variant else "")
         if done.is_file() and len(json.loads(done.read_text()).get("rounds", [])) == rounds + 1 \
                 and not a.retrain_arm(arm):
             return out
@@ -275,11 +279,11 @@ class Bench:
                "--eval-every", str(max(1, a.steps // 10))]
         for o in a.overrides:
             cmd += ["--set", o]
-        if warm:
-            cmd.append("--warm-start")
+        if variant:
+            cmd.append(VARIANTS[variant][0])
         if a.retrain_arm(arm):
             cmd.append("--force")
-        self.cli(cmd, f"selftrain-{prefix}{mode}{'-warm' if warm else ''}")
+        self.cli(cmd, f"selftrain-{prefix}{mode}{f'-{variant}' if variant else ''}")
         return out
 
     # --- arms ---------------------------------------------------------------------------------
@@ -343,9 +347,11 @@ class Bench:
                                           for s in train_seeds])
             return [self._row(arm, regime, what, kind, self.root / "models" / arm, report, quality, k=k)]
         if name.startswith("st-"):
-            short, warm = name[3:].removesuffix("-warm"), name.endswith("-warm")
+            short, _, variant = name[3:].partition("-")
             mode = {"raw": "raw", "pred": "predictions", "both": "both"}[short]
-            out = self.selftrain(mode, kind, warm)
+            if variant and variant not in VARIANTS:
+                raise SystemExit(f"unknown arm {arm!r}")
+            out = self.selftrain(mode, kind, variant)
             state = json.loads((out / "selftrain.json").read_text())
             names = [Path(c).name for c in state["settings"]["captures"]]
             rows = []
@@ -361,8 +367,8 @@ class Bench:
                 what = {"raw": f"{source}'s masks of every frame, raw",
                         "predictions": f"{source}'s masks fused by expand --labels predictions",
                         "both": f"{source}'s masks + 1 expert frame fused by expand --labels both"}[mode]
-                if warm:
-                    what += f", the model started from {source}'s weights"
+                if variant:
+                    what += ", " + VARIANTS[variant][1].format(source=source)
                 regime = "self-training" + (" (varied frames)" if kind == PHONE else "")
                 rows.append(self._row(arm, regime, what, kind, here / "model", report, quality, round=r))
             return rows
@@ -374,15 +380,16 @@ def _model_dir(root: Path, row: dict) -> Path:
         return Path(row["model_dir"])
     if row["arm"].lstrip("p").startswith("st-"):
         short = row["arm"].split("-", 1)[1]
-        mode = {"raw": "raw", "pred": "predictions", "both": "both"}[short.removesuffix("-warm")]
-        folder = _selftrain_folder(PHONE if row["arm"].startswith("p") else PLAIN, mode, short.endswith("-warm"))
+        short, _, variant = short.partition("-")
+        mode = {"raw": "raw", "pred": "predictions", "both": "both"}[short]
+        folder = _selftrain_folder(PHONE if row["arm"].startswith("p") else PLAIN, mode, variant)
         return root / "selftrain" / folder / f"round{row['round']}" / "model"
     return root / "models" / row["arm"]
 
 
-def _selftrain_folder(kind: str, mode: str, warm: bool) -> str:
+def _selftrain_folder(kind: str, mode: str, variant: str) -> str:
     """OUT/selftrain/<this>: a self-training arm's loop."""
-    return (f"{kind}-{mode}" if kind == PHONE else mode) + ("-warm" if warm else "")
+    return (f"{kind}-{mode}" if kind == PHONE else mode) + (f"-{variant}" if variant else "")
 
 
 def curve(root: Path, row: dict, present: list[str]) -> list[dict]:
@@ -496,11 +503,11 @@ def targets(by: dict[str, dict]) -> list[str]:
                 out.append(f"self-training ({where}): the ceiling ({ceiling}, exact truth of every frame) is only "
                            f"{room:+.3f} wound bed above (i): a +0.03 gain would put (ii) "
                            f"above it, so that part of the target cannot be met with this M0")
-        for mode in ("pred", "both", "pred-warm"):
+        for mode in ("pred", "both", "pred-warm", "pred-acc"):
             if f"{p}st-{mode} r1" in by and f"{p}st-{mode} r2" in by:
                 dw = wb(f"{p}st-{mode} r2") - wb(f"{p}st-{mode} r1")
                 dt = tm(f"{p}st-{mode} r2") - tm(f"{p}st-{mode} r1")
-                label = {"pred": "ii", "both": "iii", "pred-warm": "ii, warm start"}[mode]
+                label = {"pred": "ii", "both": "iii", "pred-warm": "ii, warm start", "pred-acc": "ii, accumulated labels"}[mode]
                 out.append(f"self-training ({where}, {label}): round 2 - round 1 wound bed "
                            f"{dw:+.3f}, tissue mean {dt:+.3f} (target: not below: "
                            f"{'met' if min(dw, dt) >= 0 else 'NOT met'})")

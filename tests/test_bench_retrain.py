@@ -18,7 +18,7 @@ FRAMES, W, H = 4, 48, 36
 @pytest.fixture(scope="module")
 def bench(tmp_path_factory) -> Path:
     out = tmp_path_factory.mktemp("bench_retrain") / "out"
-    args = ["--out", str(out), "--arms", "d,a1,b1,c1,f1,a1-split,st-raw,pa1,pst-raw,pst-pred-warm", "--train-seeds", "1,2", "--val-seed", "3",
+    args = ["--out", str(out), "--arms", "d,a1,b1,c1,f1,a1-split,st-raw,pa1,pst-raw,pst-pred-warm,pst-pred-acc", "--train-seeds", "1,2", "--val-seed", "3",
             "--test-seeds", "4", "--self-seeds", "5,6", "--phone-train-seeds", "7,8", "--phone-val-seed", "9",
             "--phone-test-seeds", "10", "--phone-self-seeds", "11,12", "--frames", str(FRAMES), "--width", str(W), "--height", str(H), "--steps", "2",
             "--batch-size", "2", "--crop", "32", "--input-size", f"{W}x{H}", "--floor", "0.6",
@@ -127,7 +127,8 @@ def test_phone_self_training_arm_reads_pa1(bench: Path) -> None:
 
 
 def test_warm_self_training_arm_starts_each_round_from_the_last(bench: Path) -> None:
-    """pst-pred-warm: selftrain --warm-start from pa1, in its own folder; both rounds in the table."""
+    """pst-pred-warm: selftrain --warm-start from pa1, in its own folder; both rounds in the table
+    (pst-pred-acc: --accumulate, likewise)."""
     loop = bench / "selftrain" / "phone-predictions-warm"
     state = json.loads((loop / "selftrain.json").read_text())
     assert state["settings"]["config"]["warm_start"] is True and state["settings"]["config"]["labels"] == "predictions"
@@ -137,6 +138,9 @@ def test_warm_self_training_arm_starts_each_round_from_the_last(bench: Path) -> 
     assert "pst-pred-warm r1" in rows and "pst-pred-warm r2" in rows
     assert "from M1's weights" in rows["pst-pred-warm r2"]["what"]
     assert "varied frames, M0 = pa1, ii, warm start): round 2 - round 1" in (bench / "stdout.txt").read_text()
+    acc = json.loads((bench / "selftrain" / "phone-predictions-acc" / "selftrain.json").read_text())["settings"]["config"]
+    assert acc["accumulate"] is True and acc["warm_start"] is False
+    assert "ii, accumulated labels): round 2 - round 1" in (bench / "stdout.txt").read_text()
 
 
 def _scored(wound_bed: float, tissue_mean: float) -> dict:

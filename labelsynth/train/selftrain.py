@@ -11,7 +11,8 @@ OUT/
   round<R>/predictions/<C>/ the previous model's masks of capture C (``segment``)
   round<R>/captures/<C>/    C with those masks as predictions/ (``capture.view``: C itself is never written)
   round<R>/expanded/<C>/    ``expand`` of that view (labels.h5); ``raw``: round<R>/labels/<C>.h5 instead
-  round<R>/model/           ``train``: model.onnx, train.json, curves.png (``warm_start``: from round R-1's weights)
+  round<R>/model/           ``train``: model.onnx, train.json, curves.png (``warm_start``: from round R-1's weights;
+                            ``accumulate``: on rounds 1..R's labels)
   round<R>/holdout/<H>/     the round's model's masks of held-out capture H, scored against its annotations/
 
 Every step's output is complete or absent (``outdir.building``, ``train``'s atomic files), so a
@@ -71,6 +72,8 @@ class SelfTrainConfig:
     warm_start: bool = False
     """Round R's model starts from round R-1's weights (round 1 from the checkpoint.pt beside the
     round-0 model), with a fresh optimiser and schedule; else from scratch."""
+    accumulate: bool = False
+    """Round R trains on the labels of rounds 1..R (each capture once a round); else on round R's."""
 
     def check(self) -> None:
         """Every value, and the recipe expand will use (file, keys, types, ranges) and the device,
@@ -355,6 +358,7 @@ def selftrain(captures: list[str | Path], model: str | Path, out: str | Path, cf
 
     score(0, model, str(model), None, t0)
     current = model
+    earlier: list[Path] = []  # the labels of the rounds before (``accumulate``)
     for r in range(1, cfg.rounds + 1):
         started = time.perf_counter()
         here = out / f"round{r}"
@@ -391,12 +395,14 @@ def selftrain(captures: list[str | Path], model: str | Path, out: str | Path, cf
         if holdout:
             tcfg.val_captures = [str(h) for h in holdout]
         if not _model_done(model_dir, tcfg.steps):
-            say(f"round {r}/{cfg.rounds}: train on {len(sources) + len(also)} sources")
-            result = train([*also, *sources, *holdout], model_dir, tcfg, force=True, progress=progress, log=say)
+            taught = [*also, *(earlier if cfg.accumulate else []), *sources]
+            say(f"round {r}/{cfg.rounds}: train on {len(taught)} sources")
+            result = train([*taught, *holdout], model_dir, tcfg, force=True, progress=progress, log=say)
             frames = result.train_frames
         else:
             frames = json.loads((model_dir / "train.json").read_text())["split"]["train_frames"]
         current = model_dir / "model.onnx"
+        earlier += sources
         score(r, current, str(current), frames, started)
     result = SelfTrainResult(out, rows, time.perf_counter() - t0)
     state["table"] = result.table()

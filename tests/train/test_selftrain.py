@@ -177,6 +177,19 @@ def test_warm_start_reads_the_previous_rounds_weights(data, tmp_path, monkeypatc
     assert not (tmp_path / "o4").exists()
 
 
+def test_accumulate_trains_each_round_on_every_rounds_labels(data, tmp_path):
+    """--accumulate: round 2 trains on round 1's labels and its own (the same frames twice, from
+    two models' masks); without it, on its own only (test_two_rounds_with_both)."""
+    out = tmp_path / "acc"
+    cfg = SelfTrainConfig(rounds=2, labels="raw", device="cpu", accumulate=True,
+                          train=TrainConfig(**TINY_TRAIN, val_split="none"))
+    selftrain([data["cap2"]], data["m0"], out, cfg, progress=False, log=lambda m: None)
+    for r, rounds in ((1, [1]), (2, [1, 2])):
+        report = json.loads((out / f"round{r}" / "model" / "train.json").read_text())
+        assert report["sources"] == [str(out / f"round{q}" / "labels" / "capture.h5") for q in rounds]
+        assert report["split"]["train_frames"] == 3 * len(rounds)
+
+
 def test_bad_input_is_one_line(data, tmp_path):
     runner = CliRunner()
     base = ["selftrain", str(data["cap"]), "--model", str(data["m0"]), "--out", str(tmp_path / "o")]
