@@ -39,7 +39,8 @@ def _train(out: Path, arm: str) -> dict:
 
 def test_every_arm_is_in_the_table(bench: Path) -> None:
     rows = _rows(bench)
-    assert set(rows) == {"d", "a1", "b1", "c1", "f1", "a1-split", "st-raw r1", "pa1", "pst-raw r1"}
+    assert set(rows) == {"d", "a1", "b1", "c1", "f1", "a1-split", "st-raw r1", "pa1", "pst-raw r1", "pst-pred-warm r1",
+                         "pst-pred-warm r2", "pst-pred-acc r1", "pst-pred-acc r2"}
     text = (bench / "stdout.txt").read_text()
     for arm in rows:
         assert f"| {arm} |" in text

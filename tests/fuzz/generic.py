@@ -55,7 +55,7 @@ SPECS: dict[str, Spec] = {
     "segment": Spec(["segment", "{cap}", "--model", "{model}", "--out", "{out}", "--device", "cpu"],
                     {"capture": "dir", "model": "file", "out": "out"}),
     "train": Spec(["train", "{cap}", "{h5}", "--out", "{out}", "--steps", "1", "--batch-size", "1", "--crop", "32",
-                   "--device", "cpu"], {"sources": "file-or-dir", "out": "out"}),
+                   "--device", "cpu"], {"sources": "file-or-dir", "out": "out", "init": "file-or-dir"}),
     "selftrain": Spec(["selftrain", "{cap}", "--model", "{model}", "--out", "{out}", "--rounds", "1", "--steps", "1",
                        "--batch-size", "1", "--crop", "32", "--recipe", "fast", "--device", "cpu"],
                       {"captures": "dir", "model": "file", "out": "out", "holdout": "dir", "also": "file-or-dir"}),
