@@ -324,6 +324,20 @@ def check_resumed(model: torch.nn.Module, optimizer: torch.optim.Optimizer, path
                     raise TrainError(f"{path}: the optimiser's {key} holds NaN or infinite values")
 
 
+def load_weights(model: torch.nn.Module, optimizer: torch.optim.Optimizer, saved: dict[str, Any], where: str,
+                 path: Path, cfg: TrainConfig, *, with_optimizer: bool = True) -> None:
+    """A checkpoint's tensors into ``model`` (and ``optimizer``: ``--resume``; ``--init`` starts a
+    fresh one), then ``check_resumed``: one line naming ``where`` when they do not fit the model."""
+    try:
+        model.load_state_dict(saved["model"])
+        if with_optimizer:
+            optimizer.load_state_dict(saved["optimizer"])
+    except (RuntimeError, ValueError, KeyError, TypeError, IndexError) as exc:
+        raise TrainError(f"{where}: does not fit a {cfg.arch}/{cfg.encoder} model "
+                         f"({str(exc).splitlines()[0][:200] if str(exc) else type(exc).__name__})") from None
+    check_resumed(model, optimizer, path)
+
+
 def _infinite(loader):
     while True:
         yield from loader
@@ -380,20 +394,10 @@ def _train(sources: list[str | Path], out: str | Path, cfg: TrainConfig | None, 
     optimizer = torch.optim.AdamW(model.parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay, **optimiser_options(device))
     step, history, resumed_from = 0, [], None
     if start is not None:
-        try:
-            model.load_state_dict(start["model"])
-        except (RuntimeError, ValueError, KeyError, TypeError) as exc:
-            raise TrainError(f"--init {cfg.init}: does not fit a {cfg.arch}/{cfg.encoder} model "
-                             f"({str(exc).splitlines()[0][:200] if str(exc) else type(exc).__name__})") from None
+        load_weights(model, optimizer, start, f"--init {cfg.init}", start_path, cfg, with_optimizer=False)
         say(f"starting from the weights of {start_path}")
     if state is not None:
-        try:
-            model.load_state_dict(state["model"])
-            optimizer.load_state_dict(state["optimizer"])
-        except (RuntimeError, ValueError, KeyError, TypeError, IndexError) as exc:
-            raise TrainError(f"{out / 'checkpoint.pt'}: does not fit a {cfg.arch}/{cfg.encoder} model "
-                             f"({str(exc).splitlines()[0][:200] if str(exc) else type(exc).__name__})") from None
-        check_resumed(model, optimizer, out / "checkpoint.pt")
+        load_weights(model, optimizer, state, str(out / "checkpoint.pt"), out / "checkpoint.pt", cfg)
         step = resumed_from = int(state["step"])
         history = [h for h in state["history"] if h["step"] <= step]
         say(f"resuming from step {step} of {out / 'checkpoint.pt'}")

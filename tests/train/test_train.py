@@ -15,7 +15,8 @@ from typer.testing import CliRunner
 from labelsynth.classes import IGNORE_ID, ClassMap
 from labelsynth.cli import app
 from labelsynth.export import LabelsWriter
-from labelsynth.train.checkpoint import load_checkpoint
+from labelsynth.train import TrainConfig
+from labelsynth.train.checkpoint import load_checkpoint, save_checkpoint
 from labelsynth.train.data import TrainError, load_sources, make_target, split_by_capture
 from labelsynth.train.loss import segmentation_loss
 
@@ -166,6 +167,19 @@ def test_init_starts_from_another_runs_weights(sources, tmp_path):
     _one_line_error(_invoke(sources["cap0"], sources["cap1"], "--out", first, *TINY[2:], "--steps", "3", "--resume",
                             "--init", first), "--init", "--resume")
     assert not (tmp_path / "x").exists() and not (tmp_path / "y").exists()
+    # weights that went NaN are refused as --resume refuses them, before MODEL_DIR is written
+    from labelsynth.train.model import build_model
+
+    saved = load_checkpoint(first / "checkpoint.pt")
+    (tmp_path / "nan").mkdir()
+    model = build_model("segformer", "b0", saved["classes"].num_classes)
+    model.load_state_dict(saved["model"])
+    next(model.parameters()).data.fill_(float("nan"))
+    save_checkpoint(tmp_path / "nan" / "checkpoint.pt", model, torch.optim.AdamW(model.parameters()), 2,
+                    TrainConfig(**saved["config"]), saved["classes"], [])
+    _one_line_error(_invoke(sources["cap0"], "--out", tmp_path / "z", *TINY, "--init", tmp_path / "nan"),
+                    str(tmp_path / "nan" / "checkpoint.pt"), "NaN or infinite")
+    assert not (tmp_path / "z").exists()
 
 
 def test_interrupt_saves_a_checkpoint_that_resumes(sources, tmp_path, monkeypatch):
