@@ -25,9 +25,11 @@ whose truth holds the class). Arms (``--arms``; K = expert frames per capture):
     st-both      ``--labels both``: (ii) with each capture's expert frame (iii); round 2 likewise
     st-pred-warm st-pred with ``--warm-start``: each round's model starts from the previous one's weights
     st-pred-acc  st-pred with ``--accumulate``: round 2 trains on round 1's fused labels and its own
+    st-truth     the exact truth of every frame of the self-training captures: the loop's own ceiling
+                 (what its rounds would reach were their fused labels perfect)
   varied frames (``synth --phone`` captures: exposure, white balance, blur, noise, JPEG, distance, zoom)
     pa1, pb1, pc1, pd   as a1, b1, c1, d on phone-like captures, tested on phone-like captures
-    pst-raw, pst-pred, pst-both, pst-pred-warm, pst-pred-acc   self-training on phone-like captures (``--phone-self-seeds``) from
+    pst-raw, pst-pred, pst-both, pst-pred-warm, pst-pred-acc, pst-truth   self-training on phone-like captures (``--phone-self-seeds``) from
                  M0 = pa1's model: the weak model whose masks disagree from view to view (it fails
                  where a video's exposure or distance drifts), the paper's main mode
 
@@ -346,6 +348,14 @@ class Bench:
             quality = self.label_quality([(self.expand(kind, s, k) / "masks", self.synth(kind, s) / "truth")
                                           for s in train_seeds])
             return [self._row(arm, regime, what, kind, self.root / "models" / arm, report, quality, k=k)]
+        if name == "st-truth":
+            sources = [self.view(kind, s, None) for s in self.seeds[kind]["self"]]
+            if not sources:
+                raise SystemExit(f"{arm}: no self-training captures (--{'phone-' if kind == PHONE else ''}self-seeds)")
+            report = self.train(arm, sources, kind)
+            return [self._row(arm, "self-training" + (" (varied frames)" if kind == PHONE else ""),
+                              "exact truth of every frame of the self-training captures (the loop's ceiling)", kind,
+                              self.root / "models" / arm, report, {"exact": True})]
         if name.startswith("st-"):
             short, _, variant = name[3:].partition("-")
             mode = {"raw": "raw", "pred": "predictions", "both": "both"}[short]
@@ -511,6 +521,11 @@ def targets(by: dict[str, dict]) -> list[str]:
                 out.append(f"self-training ({where}, {label}): round 2 - round 1 wound bed "
                            f"{dw:+.3f}, tissue mean {dt:+.3f} (target: not below: "
                            f"{'met' if min(dw, dt) >= 0 else 'NOT met'})")
+        if f"{p}st-truth" in by and f"{p}st-pred r1" in by:
+            out.append(f"self-training ({where}): the loop's ceiling ({p}st-truth, exact truth of the self-training "
+                       f"captures) is {wb(f'{p}st-truth') - wb(f'{p}st-pred r1'):+.3f} wound bed, "
+                       f"{tm(f'{p}st-truth') - tm(f'{p}st-pred r1'):+.3f} tissue mean above round 1 of (ii): the room "
+                       f"a second round has")
     return out
 
 

@@ -18,7 +18,7 @@ FRAMES, W, H = 4, 48, 36
 @pytest.fixture(scope="module")
 def bench(tmp_path_factory) -> Path:
     out = tmp_path_factory.mktemp("bench_retrain") / "out"
-    args = ["--out", str(out), "--arms", "d,a1,b1,c1,f1,a1-split,st-raw,pa1,pst-raw,pst-pred-warm,pst-pred-acc", "--train-seeds", "1,2", "--val-seed", "3",
+    args = ["--out", str(out), "--arms", "d,a1,b1,c1,f1,a1-split,st-raw,pa1,pst-raw,pst-pred-warm,pst-pred-acc,pst-truth", "--train-seeds", "1,2", "--val-seed", "3",
             "--test-seeds", "4", "--self-seeds", "5,6", "--phone-train-seeds", "7,8", "--phone-val-seed", "9",
             "--phone-test-seeds", "10", "--phone-self-seeds", "11,12", "--frames", str(FRAMES), "--width", str(W), "--height", str(H), "--steps", "2",
             "--batch-size", "2", "--crop", "32", "--input-size", f"{W}x{H}", "--floor", "0.6",
@@ -40,7 +40,7 @@ def _train(out: Path, arm: str) -> dict:
 def test_every_arm_is_in_the_table(bench: Path) -> None:
     rows = _rows(bench)
     assert set(rows) == {"d", "a1", "b1", "c1", "f1", "a1-split", "st-raw r1", "pa1", "pst-raw r1", "pst-pred-warm r1",
-                         "pst-pred-warm r2", "pst-pred-acc r1", "pst-pred-acc r2"}
+                         "pst-pred-warm r2", "pst-pred-acc r1", "pst-pred-acc r2", "pst-truth"}
     text = (bench / "stdout.txt").read_text()
     for arm in rows:
         assert f"| {arm} |" in text
@@ -144,6 +144,17 @@ def test_warm_self_training_arm_starts_each_round_from_the_last(bench: Path) -> 
     assert "ii, accumulated labels): round 2 - round 1" in (bench / "stdout.txt").read_text()
 
 
+def test_loop_ceiling_trains_on_the_self_training_captures_truth(bench: Path) -> None:
+    """pst-truth: the exact truth of every frame of the phone self-training captures (not the
+    train captures), validated on the phone validation capture like every other arm."""
+    sources = _train(bench, "pst-truth")["sources"]
+    views = bench / "views"
+    assert sources[:2] == [str(views / "phone-all" / f"seed{s}") for s in (11, 12)]
+    row = _rows(bench)["pst-truth"]
+    assert row["train_frames"] == 2 * FRAMES and row["labels"] == {"exact": True}
+    assert row["regime"] == "self-training (varied frames)"
+
+
 def _scored(wound_bed: float, tissue_mean: float) -> dict:
     return {"test": {"classes": {"wound_bed": {"dice": wound_bed}}, "tissue_mean_dice": tissue_mean}}
 
@@ -169,3 +180,7 @@ def test_self_training_targets_read_the_right_arms() -> None:
     lines = targets(by)
     assert not any("the ceiling (pd" in x for x in lines)
     assert "(target: not below: met)" in next(x for x in lines if "round 2 - round 1" in x)
+    assert not any("the loop's ceiling" in x for x in lines)
+    by["pst-truth"] = _scored(0.975, 0.800)
+    room = next(x for x in targets(by) if "the loop's ceiling" in x)
+    assert "+0.005 wound bed, +0.040 tissue mean above round 1" in room
