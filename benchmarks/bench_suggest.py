@@ -12,7 +12,8 @@ Cases (every frame carries its exact truth as an annotation, so any choice can t
 
 Per case, `suggest --annotate max(K)` fits the geometry once (greedy: its first K frames are its
 choice for every smaller K). Then for each K and each choice (suggested, the frame objective's choice
-on the same geometry (`suggest --objective frames`, ``SurfaceViews.frame_choice``), spread:K,
+on the same geometry (`suggest --objective frames`, ``SurfaceViews.frame_choice``), the surface
+objective with each sample weighted by the rarity of its colour (appearance, ``appearance_weights``), spread:K,
 --random subsets drawn with a fixed seed) `expand --geometry SUGGEST_OUT --annotated-frames CHOICE --labels
 annotations --no-report` (``pipeline.expand``, what the CLI calls), scored against the truth on the
 frames not chosen: wound bed Dice and the mean Dice of the tissue classes present (the lego:
@@ -54,6 +55,9 @@ DEFAULT_LEGO = next((p for p in (REPO.parent / "shared" / "data" / "lego", REPO.
                      if p.is_dir()), REPO.parent / "shared" / "data" / "lego")  # /work/main or a worktree
 SYNTH_CASES = {"wound-a": ("one-sided", 11), "wound-b": ("one-sided", 12), "around": ("all-around", 13),
                "uneven": ("all-around-uneven", 13)}
+CHOICES = ("suggested", "frames", "appearance", "spread")
+"""Each K's choices besides the random ones: suggest's (surface objective), the frame objective's,
+the surface objective on samples weighted by the rarity of their colour (``appearance_weights``), spread:K."""
 
 
 def log(msg: str) -> None:
@@ -161,6 +165,7 @@ def run_case(name: str, case: Path, args) -> dict:
         rng = np.random.default_rng([args.seed, k])
         views = _views(suggest_out)
         choices = {"suggested": sorted(ranked[:k]), "frames": sorted(names[i] for i in views.frame_choice(k)),
+                   "appearance": sorted(p.name for p in _appearance_views(suggest_out).greedy(k)),
                    "spread": select_frames(f"spread:{k}", names)}
         for r in range(args.random):
             choices[f"random{r}"] = sorted(names[i] for i in rng.choice(len(names), k, replace=False))
@@ -172,14 +177,13 @@ def run_case(name: str, case: Path, args) -> dict:
         randoms = [res[c] for c in res if c.startswith("random")]
         worst = min(randoms, key=lambda r: r["wound_bed"]) if randoms else None
         cov = {c: _coverage(suggest_out, chosen) for c, chosen in choices.items()}
-        rows[k] = {"suggested": res["suggested"], "frames": res["frames"], "spread": res["spread"], "worst_random": worst,
+        rows[k] = {**{c: res[c] for c in CHOICES}, "worst_random": worst,
                    "random_mean_wound_bed": float(np.mean([r["wound_bed"] for r in randoms])) if randoms else None,
-                   "coverage": {"suggested": cov["suggested"], "frames": cov["frames"], "spread": cov["spread"],
+                   "coverage": {**{c: cov[c] for c in CHOICES},
                                 "worst_random": cov[next(c for c in res if res[c] is worst)] if worst else None}}
-        s, fr, p = res["suggested"], res["frames"], res["spread"]
-        log(f"{name} K={k}: wound bed suggested {s['wound_bed']:.3f} frames {fr['wound_bed']:.3f} spread {p['wound_bed']:.3f}"
+        log(f"{name} K={k}: wound bed " + " ".join(f"{c} {res[c]['wound_bed']:.3f}" for c in CHOICES)
             + (f" worst random {worst['wound_bed']:.3f}" if worst else "")
-            + f"; tissue mean suggested {_f(s['tissue_mean'])} frames {_f(fr['tissue_mean'])} spread {_f(p['tissue_mean'])}")
+            + "; tissue mean " + " ".join(f"{c} {_f(res[c]['tissue_mean'])}" for c in CHOICES))
     return {"case": name, "frames": len(names), "ranked": ranked, "coverage": sug["coverage_by_k"],
             "geometry_seconds": sug["seconds"].get("geometry"), "suggest_seconds": sug["seconds"], "by_k": rows}
 
@@ -218,6 +222,20 @@ def _views(suggest_out: Path):
 
 
 _VIEWS: dict = {}
+_APPEARANCE: dict = {}
+
+
+def _appearance_views(suggest_out: Path):
+    """The suggest run's ``SurfaceViews`` with its samples weighted by ``appearance_weights``."""
+    if _APPEARANCE.get(suggest_out) is None:
+        from labelsynth.capture import load_capture
+        from labelsynth.suggest.coverage import appearance_weights, surface_colours
+
+        views = _views(suggest_out)
+        capture = load_capture(json.loads((suggest_out / "suggest.json").read_text())["capture"])
+        colours = surface_colours(views, capture.unit_cameras(), capture.load_image, progress=False)
+        _APPEARANCE[suggest_out] = views.weighted(appearance_weights(colours))
+    return _APPEARANCE[suggest_out]
 
 
 def _f(x) -> str:
@@ -284,17 +302,20 @@ def _stages(seconds: dict) -> str:
 
 # --- report -----------------------------------------------------------------------------------
 def table(results: list[dict]) -> str:
-    lines = ["| case | K | coverage sugg / frames / spread / worst rnd | wound bed sugg | frames | spread | worst rnd | "
-             "tissue mean sugg | frames | spread | worst rnd | sugg - spread (wb / tissue) | frames - spread (wb / tissue) |",
-             "|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
+    choices = [c for c in CHOICES if c != "spread"]
+    short = {"suggested": "sugg", "frames": "frames", "appearance": "appear", "spread": "spread"}
+    head = " / ".join(short[c] for c in CHOICES)
+    lines = [f"| case | K | coverage {head} / worst rnd | wound bed {head} / worst rnd | tissue mean {head} / worst rnd | "
+             + " | ".join(f"{short[c]} - spread (wb / tissue)" for c in choices) + " |",
+             "|---" * (5 + len(choices)) + "|"]
     for res in results:
         for k, row in res["by_k"].items():
-            s, fr, p, w = row["suggested"], row["frames"], row["spread"], row["worst_random"] or {}
-            cov = row["coverage"]
-            lines.append(f"| {res['case']} | {k} | {cov['suggested']:.3f} / {cov['frames']:.3f} / {cov['spread']:.3f} / "
-                         f"{_f(cov['worst_random'])} | {s['wound_bed']:.3f} | {fr['wound_bed']:.3f} | {p['wound_bed']:.3f} | "
-                         f"{_f(w.get('wound_bed'))} | {_f(s['tissue_mean'])} | {_f(fr['tissue_mean'])} | "
-                         f"{_f(p['tissue_mean'])} | {_f(w.get('tissue_mean'))} | {_diff(s, p)} | {_diff(fr, p)} |")
+            w, cov = row["worst_random"] or {}, row["coverage"]
+            cells = [" / ".join([*(f"{cov[c]:.3f}" for c in CHOICES), _f(cov["worst_random"])]),
+                     " / ".join([*(f"{row[c]['wound_bed']:.3f}" for c in CHOICES), _f(w.get("wound_bed"))]),
+                     " / ".join([*(_f(row[c]["tissue_mean"]) for c in CHOICES), _f(w.get("tissue_mean"))]),
+                     *(_diff(row[c], row["spread"]) for c in choices)]
+            lines.append(f"| {res['case']} | {k} | " + " | ".join(cells) + " |")
     return "\n".join(lines)
 
 
@@ -316,7 +337,7 @@ def combine(summaries: list[Path]) -> str:
     for name in cases:
         rows = [next(c for c in r["cases"] if c["case"] == name)["by_k"] for r in runs]
         for k in rows[0]:
-            for choice in ("suggested", "frames", "spread"):
+            for choice in [c for c in CHOICES if all(c in r[k] for r in rows)]:  # older runs lack a newer choice
                 cells = []
                 for key in ("wound_bed", "tissue_mean"):
                     vals = [r[k][choice][key] for r in rows]

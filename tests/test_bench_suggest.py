@@ -24,12 +24,13 @@ def test_fit_seed_reaches_suggest_and_every_expand(tmp_path: Path) -> None:
     res = _bench(tmp_path, 3)
     assert any(line.startswith("| around | 2 |") for line in res.stdout.splitlines())
     assert json.loads((tmp_path / "around" / "suggest" / "suggest.json").read_text())["seed"] == 3
-    for choice in ("suggested", "frames", "spread", "random0"):
+    for choice in ("suggested", "frames", "appearance", "spread", "random0"):
         run = json.loads((tmp_path / "around" / "K2" / choice / "run.json").read_text())
         assert run["seed"] == 3 and len(run["annotated_frames"]) == 2
     summary = json.loads((tmp_path / "bench_suggest.json").read_text())
     row = summary["cases"][0]["by_k"]["2"]
     assert row["suggested"]["scored"] == row["frames"]["scored"] == row["spread"]["scored"] == 4  # 6 less the 2 chosen
+    assert row["appearance"]["scored"] == 4
 
     first = tmp_path / "seed3.json"
     first.write_text((tmp_path / "bench_suggest.json").read_text())
@@ -47,3 +48,4 @@ def test_fit_seed_reaches_suggest_and_every_expand(tmp_path: Path) -> None:
     cells = [c.strip() for c in row.strip("|").split("|")]
     assert cells[3] == " ".join(f"{r['frames']['wound_bed']:.3f}" for r in runs)
     assert cells[4] == f"{np.mean(diffs):+.3f} ± {np.std(diffs, ddof=1):.3f}"
+    assert any(line.startswith("| around | 2 | appearance |") for line in table.splitlines())

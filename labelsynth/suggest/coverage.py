@@ -25,7 +25,9 @@ first K of its (K+1)-choice.
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from typing import Callable
 
+import cv2
 import numpy as np
 import trimesh
 
@@ -49,6 +51,13 @@ class CoverageConfig:
     point still counts as the point (the sample lies on a triangle; Embree casts in float32)."""
     seed: int = 0
     """Seed of the surface samples."""
+    colour_neighbours: int = 32
+    """``appearance_weights``: a sample's colour density is read at its k-th nearest colour."""
+    colour_floor: float = 1.0
+    """``appearance_weights``: colour distances below this (CIELAB units) count as this, so a
+    surface of one exact colour (a synthetic skin, a saturated patch) keeps a weight."""
+    weight_cap: float = 8.0
+    """``appearance_weights``: no sample counts more than this many times the median sample."""
 
 
 @dataclass
@@ -75,11 +84,22 @@ class SurfaceViews:
     """(F, N) float32: 0 = unseen, 1 = seen close and square (see the module docstring)."""
     reference: float
     """Pixel density that counts fully (``CoverageConfig.reference_quantile``)."""
+    weights: np.ndarray | None = None
+    """(N,) how much each sample counts in the surface objective (None: all alike; see
+    ``appearance_weights``)."""
     total: float = field(init=False)
     _shares: np.ndarray | None = field(init=False, default=None, repr=False)
 
     def __post_init__(self) -> None:
-        self.total = float(self.quality.max(axis=0).sum()) if len(self.quality) else 0.0
+        self.total = float(self._weighted(self.quality.max(axis=0)).sum()) if len(self.quality) else 0.0
+
+    def _weighted(self, values: np.ndarray) -> np.ndarray:
+        return values if self.weights is None else values * self.weights
+
+    def weighted(self, weights: np.ndarray | None) -> "SurfaceViews":
+        """The same views with the samples weighted by ``weights`` (N,) in the surface objective."""
+        return SurfaceViews(self.names, self.points, self.normals, self.quality, self.reference,
+                            None if weights is None else np.asarray(weights, dtype=np.float32))
 
     @property
     def seen(self) -> np.ndarray:
@@ -90,7 +110,7 @@ class SurfaceViews:
         """The share of what all frames show that these frames show (0..1)."""
         if not indices or self.total <= 0:
             return 0.0
-        return float(self.quality[list(indices)].max(axis=0).sum() / self.total)
+        return float(self._weighted(self.quality[list(indices)].max(axis=0)).sum() / self.total)
 
     def greedy(self, k: int, *, first: list[int] | None = None, among: list[int] | None = None) -> list[Pick]:
         """``k`` frames, each the one that adds most to those before it (ties: the earlier frame).
@@ -102,7 +122,7 @@ class SurfaceViews:
         total = self.total if self.total > 0 else 1.0
         chosen = list(first or [])
         picks: list[Pick] = []
-        for i, gain in greedy_facility(self.quality, k, chosen=first or [], among=among):
+        for i, gain in greedy_facility(self._weighted(self.quality), k, chosen=first or [], among=among):
             chosen.append(i)
             picks.append(Pick(self.names[i], i, float(max(gain, 0.0) / total), self.coverage(chosen)))
         return picks
@@ -221,3 +241,47 @@ def surface_views(mesh: trimesh.Trimesh, cameras: list[Camera], names: list[str]
     reference = float(np.quantile(best[best > 0], cfg.reference_quantile))
     quality = np.minimum(density / reference, 1.0).astype(np.float32)
     return SurfaceViews(list(names), points, normals, quality, reference)
+
+
+def surface_colours(views: SurfaceViews, cameras: list[Camera], load_image: Callable[[int], np.ndarray], *,
+                    blur: int = 5, progress: bool = True) -> np.ndarray:
+    """(N, 3) float32 RGB in [0, 1] of each sample, read (box-blurred over ``blur`` pixels, so noise
+    and JPEG blocks do not make a colour) in the frame that sees it best; NaN where no frame does."""
+    best = views.quality.argmax(axis=0)
+    seen = views.seen
+    colours = np.full((len(views.points), 3), np.nan, np.float32)
+    for f in track(sorted(set(best[seen].tolist())), "colour of the surface", enabled=progress):
+        idx = np.nonzero(seen & (best == f))[0]
+        image = cv2.blur(load_image(f), (blur, blur)) if blur > 1 else load_image(f)
+        pix, _ = cameras[f].project(views.points[idx])
+        h, w = image.shape[:2]
+        cols = np.clip(np.floor(pix[:, 0]).astype(np.int64), 0, w - 1)
+        rows = np.clip(np.floor(pix[:, 1]).astype(np.int64), 0, h - 1)
+        colours[idx] = image[rows, cols, :3].astype(np.float32) / 255.0
+    return colours
+
+
+def appearance_weights(colours: np.ndarray, cfg: CoverageConfig | None = None) -> np.ndarray:
+    """(N,) weight of each sample by how rare its colour is on the surface: the inverse square root
+    of its colour density (from the distance to its k-th nearest colour in CIELAB, lightness
+    halved so that shading counts less than hue), median 1, capped at ``weight_cap``; 0 where it
+    has no colour. Why: labels carry well across a surface of one appearance, and the frames an
+    annotator must see are those that show the rare ones (small tissues, parts of another colour)."""
+    from scipy.spatial import cKDTree
+
+    cfg = cfg or CoverageConfig()
+    weights = np.zeros(len(colours), np.float32)
+    have = np.isfinite(colours).all(axis=1)
+    n = int(have.sum())
+    if n < 2:
+        weights[have] = 1.0
+        return weights
+    lab = cv2.cvtColor(colours[have].reshape(-1, 1, 3).astype(np.float32), cv2.COLOR_RGB2Lab).reshape(-1, 3)
+    lab[:, 0] *= 0.5
+    k = min(cfg.colour_neighbours, n - 1)
+    dist, _ = cKDTree(lab).query(lab, k=k + 1)  # the first neighbour is the sample itself
+    radius = np.maximum(dist[:, -1], cfg.colour_floor)
+    rarity = radius ** 1.5  # density ~ k / r^3: its inverse square root
+    rarity /= np.median(rarity)
+    weights[have] = np.minimum(rarity, cfg.weight_cap)
+    return weights

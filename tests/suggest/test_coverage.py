@@ -176,3 +176,61 @@ def test_frame_objective_prefers_a_teacher_that_sees_a_frame_whole():
     assert sorted(p.index for p in views.greedy(2)) == [1, 2]
     choice = views.frame_choice(2)
     assert 0 in choice and views.frame_score(choice) > views.frame_score([1, 2]) + 0.05
+
+
+def test_rare_colours_weigh_more_and_a_single_colour_weighs_alike():
+    from labelsynth.suggest.coverage import appearance_weights
+
+    rng = np.random.default_rng(0)
+    skin = np.clip(np.array([0.85, 0.65, 0.55]) + rng.normal(0, 0.02, (900, 3)), 0, 1)
+    tissue = np.clip(np.array([0.55, 0.05, 0.05]) + rng.normal(0, 0.02, (100, 3)), 0, 1)
+    colours = np.concatenate([skin, tissue, np.full((5, 3), np.nan)]).astype(np.float32)
+    w = appearance_weights(colours, CoverageConfig(weight_cap=50.0))
+    assert np.all(w[-5:] == 0) and np.all(w[:-5] > 0)  # no colour: no weight
+    assert np.median(w[:1000]) == pytest.approx(1.0, rel=0.05)
+    # a tenth as dense: about sqrt(10) times the weight (inverse square root of the density)
+    assert 2.0 < np.median(w[900:1000]) / np.median(w[:900]) < 5.0
+    capped = appearance_weights(colours, CoverageConfig(weight_cap=2.0))
+    assert capped.max() <= 2.0 + 1e-6
+    flat = appearance_weights(np.full((50, 3), 0.5, np.float32))  # one exact colour: the floor keeps weights alike
+    assert flat == pytest.approx(np.ones(50))
+
+
+def test_colours_are_read_where_the_best_frame_sees_each_sample():
+    from labelsynth.suggest.coverage import surface_colours
+
+    plate = trimesh.creation.box(extents=(1.0, 1.0, 0.02))
+    cam = Camera(SIZE, SIZE, 20.0, 20.0, SIZE / 2, SIZE / 2, look_at(np.array([0.0, 0.0, 2.0]), np.zeros(3), up=(0, 1, 0)))
+    away = Camera(SIZE, SIZE, 20.0, 20.0, SIZE / 2, SIZE / 2, look_at(np.array([0.0, 0.0, -2.0]), np.zeros(3), up=(0, 1, 0)))
+    views = surface_views(plate, [away, cam], ["under", "over"], CoverageConfig(samples=3000), progress=False)
+    image = np.zeros((SIZE, SIZE, 3), np.uint8)
+    image[:, : SIZE // 2] = (200, 30, 30)  # left half red, right half grey
+    image[:, SIZE // 2:] = (120, 120, 120)
+    loaded = []
+
+    def load(i: int) -> np.ndarray:
+        loaded.append(i)
+        return image if i == 1 else np.full_like(image, 255)
+
+    colours = surface_colours(views, [away, cam], load, blur=1, progress=False)
+    top = views.quality[1] >= views.quality[0]
+    top &= views.quality[1] > 0
+    pix, _ = cam.project(views.points[top])
+    left, right = pix[:, 0] < SIZE / 2 - 1, pix[:, 0] >= SIZE / 2 + 1
+    assert np.allclose(colours[top][left], np.array([200, 30, 30]) / 255, atol=1e-6)
+    assert np.allclose(colours[top][right], np.array([120, 120, 120]) / 255, atol=1e-6)
+    assert np.isnan(colours[~views.seen]).all() and sorted(set(loaded)) == [0, 1]  # each frame read once
+
+
+def test_weighted_coverage_follows_the_heavy_samples():
+    ball = trimesh.creation.icosphere(subdivisions=3, radius=0.6)
+    cams, names = _one_sided_path()
+    views = surface_views(ball, cams, names, CoverageConfig(samples=4000), progress=False)
+    assert views.greedy(1)[0].name != "f0"
+    heavy = np.where(views.quality[0] >= views.quality.max(axis=0) - 1e-6, 1.0, 0.0) * (views.quality[0] > 0)
+    weighted = views.weighted(heavy + 1e-3)  # nearly all the weight where f0 sees best
+    assert weighted.greedy(1)[0].name == "f0"
+    q = views.quality[[0, 7]].max(axis=0)
+    full = views.quality.max(axis=0)
+    assert weighted.coverage([0, 7]) == pytest.approx(float(((heavy + 1e-3) * q).sum() / ((heavy + 1e-3) * full).sum()), rel=1e-5)
+    assert views.weighted(None).coverage([0, 7]) == pytest.approx(views.coverage([0, 7]))
