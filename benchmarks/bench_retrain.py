@@ -25,11 +25,13 @@ whose truth holds the class). Arms (``--arms``; K = expert frames per capture):
     st-both      ``--labels both``: (ii) with each capture's expert frame (iii); round 2 likewise
     st-pred-warm st-pred with ``--warm-start``: each round's model starts from the previous one's weights
     st-pred-acc  st-pred with ``--accumulate``: round 2 trains on round 1's fused labels and its own
+    st-pred-conf st-pred with each pixel weighted by its fused label's confidence (``train``'s default;
+                 the other self-training arms train unweighted)
     st-truth     the exact truth of every frame of the self-training captures: the loop's own ceiling
                  (what its rounds would reach were their fused labels perfect)
   varied frames (``synth --phone`` captures: exposure, white balance, blur, noise, JPEG, distance, zoom)
     pa1, pb1, pc1, pd   as a1, b1, c1, d on phone-like captures, tested on phone-like captures
-    pst-raw, pst-pred, pst-both, pst-pred-warm, pst-pred-acc, pst-truth   self-training on phone-like captures (``--phone-self-seeds``) from
+    pst-raw, pst-pred, pst-both, pst-pred-warm, pst-pred-acc, pst-pred-conf, pst-truth   self-training on phone-like captures (``--phone-self-seeds``) from
                  M0 = pa1's model: the weak model whose masks disagree from view to view (it fails
                  where a video's exposure or distance drifts), the paper's main mode
 
@@ -60,8 +62,10 @@ import numpy as np
 TISSUES = ("granulation", "slough", "necrotic", "epithelial", "unknown")
 PLAIN, PHONE = "plain", "phone"
 VARIANTS = {"warm": ("--warm-start", "the model started from {source}'s weights"),
-            "acc": ("--accumulate", "plus every earlier round's fused labels")}
-"""Self-training arm suffixes (st-pred-warm, ...): the selftrain option, and what the table says of it."""
+            "acc": ("--accumulate", "plus every earlier round's fused labels"),
+            "conf": ("--confidence-weight", "each pixel weighted by its labels.h5 confidence (train's default)")}
+"""Self-training arm suffixes (st-pred-warm, ...): the selftrain option, and what the table says of it
+(every other self-training arm trains unweighted, ``--no-confidence-weight``, like bK)."""
 
 
 def _ints(text: str) -> list[int]:
@@ -277,11 +281,12 @@ class Bench:
                "--holdout", str(self.view(kind, self.seeds[kind]["val"][0], None)), "--recipe", a.recipe,
                "--device", a.device,
                "--steps", str(a.steps), "--batch-size", str(a.batch_size), "--crop", str(a.crop), "--lr", str(a.lr),
-               "--input-size", a.input_size, "--no-confidence-weight", "--seed", str(a.seed),
+               "--input-size", a.input_size, "--seed", str(a.seed),
                "--eval-every", str(max(1, a.steps // 10))]
         for o in a.overrides:
             cmd += ["--set", o]
-        if variant:
+        cmd.append("--confidence-weight" if variant == "conf" else "--no-confidence-weight")
+        if variant and variant != "conf":
             cmd.append(VARIANTS[variant][0])
         if a.retrain_arm(arm):
             cmd.append("--force")
@@ -513,11 +518,12 @@ def targets(by: dict[str, dict]) -> list[str]:
                 out.append(f"self-training ({where}): the ceiling ({ceiling}, exact truth of every frame) is only "
                            f"{room:+.3f} wound bed above (i): a +0.03 gain would put (ii) "
                            f"above it, so that part of the target cannot be met with this M0")
-        for mode in ("pred", "both", "pred-warm", "pred-acc"):
+        for mode in ("pred", "both", "pred-warm", "pred-acc", "pred-conf"):
             if f"{p}st-{mode} r1" in by and f"{p}st-{mode} r2" in by:
                 dw = wb(f"{p}st-{mode} r2") - wb(f"{p}st-{mode} r1")
                 dt = tm(f"{p}st-{mode} r2") - tm(f"{p}st-{mode} r1")
-                label = {"pred": "ii", "both": "iii", "pred-warm": "ii, warm start", "pred-acc": "ii, accumulated labels"}[mode]
+                label = {"pred": "ii", "both": "iii", "pred-warm": "ii, warm start", "pred-acc": "ii, accumulated labels",
+                         "pred-conf": "ii, confidence-weighted"}[mode]
                 out.append(f"self-training ({where}, {label}): round 2 - round 1 wound bed "
                            f"{dw:+.3f}, tissue mean {dt:+.3f} (target: not below: "
                            f"{'met' if min(dw, dt) >= 0 else 'NOT met'})")

@@ -18,7 +18,7 @@ FRAMES, W, H = 4, 48, 36
 @pytest.fixture(scope="module")
 def bench(tmp_path_factory) -> Path:
     out = tmp_path_factory.mktemp("bench_retrain") / "out"
-    args = ["--out", str(out), "--arms", "d,a1,b1,c1,f1,a1-split,st-raw,pa1,pst-raw,pst-pred-warm,pst-pred-acc,pst-truth", "--train-seeds", "1,2", "--val-seed", "3",
+    args = ["--out", str(out), "--arms", "d,a1,b1,c1,f1,a1-split,st-raw,pa1,pst-raw,pst-pred-warm,pst-pred-acc,pst-pred-conf,pst-truth", "--train-seeds", "1,2", "--val-seed", "3",
             "--test-seeds", "4", "--self-seeds", "5,6", "--phone-train-seeds", "7,8", "--phone-val-seed", "9",
             "--phone-test-seeds", "10", "--phone-self-seeds", "11,12", "--frames", str(FRAMES), "--width", str(W), "--height", str(H), "--steps", "2",
             "--batch-size", "2", "--crop", "32", "--input-size", f"{W}x{H}", "--floor", "0.6",
@@ -40,7 +40,7 @@ def _train(out: Path, arm: str) -> dict:
 def test_every_arm_is_in_the_table(bench: Path) -> None:
     rows = _rows(bench)
     assert set(rows) == {"d", "a1", "b1", "c1", "f1", "a1-split", "st-raw r1", "pa1", "pst-raw r1", "pst-pred-warm r1",
-                         "pst-pred-warm r2", "pst-pred-acc r1", "pst-pred-acc r2", "pst-truth"}
+                         "pst-pred-warm r2", "pst-pred-acc r1", "pst-pred-acc r2", "pst-pred-conf r1", "pst-pred-conf r2", "pst-truth"}
     text = (bench / "stdout.txt").read_text()
     for arm in rows:
         assert f"| {arm} |" in text
@@ -142,6 +142,11 @@ def test_warm_self_training_arm_starts_each_round_from_the_last(bench: Path) -> 
     acc = json.loads((bench / "selftrain" / "phone-predictions-acc" / "selftrain.json").read_text())["settings"]["config"]
     assert acc["accumulate"] is True and acc["warm_start"] is False
     assert "ii, accumulated labels): round 2 - round 1" in (bench / "stdout.txt").read_text()
+    # pst-pred-conf: train's default confidence weighting; every other self-training arm trains unweighted
+    conf = json.loads((bench / "selftrain" / "phone-predictions-conf" / "selftrain.json").read_text())["settings"]["config"]
+    assert conf["train"]["confidence_weight"] is True and acc["train"]["confidence_weight"] is False
+    assert conf["warm_start"] is False and conf["accumulate"] is False
+    assert "ii, confidence-weighted): round 2 - round 1" in (bench / "stdout.txt").read_text()
 
 
 def test_loop_ceiling_trains_on_the_self_training_captures_truth(bench: Path) -> None:
