@@ -13,6 +13,8 @@ import pytest
 from .conftest import TINY_EXPAND, load_benchmark, run_benchmark
 
 FRAMES, W, H = 4, 48, 36
+# One worker runs the module, so the ~6-minute benchmark fixture runs once, not once per worker.
+pytestmark = pytest.mark.xdist_group("bench_retrain")
 
 
 @pytest.fixture(scope="module")
