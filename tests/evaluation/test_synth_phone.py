@@ -25,8 +25,15 @@ W, H, N = 96, 72, 6
 # machine, not byte for byte: OpenCV and NumPy pick SIMD kernels by CPU, so the same code on
 # another CPU moves a few pixels by one level and JSON floats in their last bits (CI's machine
 # did; ``cv2.setUseOptimized(False)`` does the same here). A change of the defaults moves far more.
+# Rewrite it (only for a deliberate change of the defaults) with
+# ``python -m tests.evaluation.test_synth_phone --write-reference``.
 REFERENCE = Path(__file__).parent / "data" / "synth_seed7.npz"
 LAYOUTS = ("all-around", "one-sided")
+
+
+def _seed7(layout: str, **options) -> SynthConfig:
+    """The pinned capture's settings (``options``: phone options or another seed on top)."""
+    return SynthConfig(**{**dict(frames=3, annotated=1, width=48, height=36, seed=7, layout=layout), **options})
 
 
 def _content(out: Path) -> dict[str, object]:
@@ -43,6 +50,23 @@ def _content(out: Path) -> dict[str, object]:
         else:
             found[rel] = p.read_bytes()
     return found
+
+
+def _write_reference(path: Path = REFERENCE) -> None:
+    """Each layout's ``_content``, arrays as they are and JSON as its sorted text (what
+    ``_reference`` reads back)."""
+    import tempfile
+
+    entries: dict[str, np.ndarray] = {}
+    with tempfile.TemporaryDirectory() as tmp:
+        for layout in LAYOUTS:
+            synthesize(Path(tmp) / layout, _seed7(layout), progress=False)
+            for rel, value in _content(Path(tmp) / layout).items():
+                if isinstance(value, bytes):
+                    raise SystemExit(f"{rel}: no reference format for this file type")
+                entries[f"{layout}/{rel}"] = value if isinstance(value, np.ndarray) else \
+                    np.array(json.dumps(value, sort_keys=True))
+    np.savez_compressed(path, **entries)
 
 
 def _reference(layout: str) -> dict[str, object]:
@@ -74,16 +98,16 @@ def _assert_same_capture(out: Path, want: dict[str, object]) -> None:
 
 
 def _assert_same_file(rel: str, g: object, w: object) -> None:
-    if isinstance(w, np.ndarray) and w.dtype.kind in "ui":  # images, masks: one level, on few pixels
-        assert isinstance(g, np.ndarray) and (g.dtype, g.shape) == (w.dtype, w.shape), rel
+    if not isinstance(w, np.ndarray):
+        _assert_same_json(g, w, rel)
+        return
+    assert isinstance(g, np.ndarray) and (g.dtype, g.shape) == (w.dtype, w.shape), rel
+    if w.dtype.kind in "ui":  # images, masks: one level, on few pixels
         moved = np.abs(g.astype(np.int64) - w.astype(np.int64))
         assert moved.max() <= 1 and (moved > 0).mean() <= 0.01, \
             f"the default synth output changed: {rel} ({(moved > 0).mean():.2%} of values, by up to {moved.max()})"
-    elif isinstance(w, np.ndarray):
-        assert isinstance(g, np.ndarray) and (g.dtype, g.shape) == (w.dtype, w.shape), rel
-        assert np.allclose(g, w, rtol=1e-5, atol=1e-6, equal_nan=True), f"the default synth output changed: {rel}"
     else:
-        _assert_same_json(g, w, rel)
+        assert np.allclose(g, w, rtol=1e-5, atol=1e-6, equal_nan=True), f"the default synth output changed: {rel}"
 
 
 def _rgb(path: Path) -> np.ndarray:
@@ -99,11 +123,10 @@ def test_defaults_keep_the_content_of_existing_seeds(tmp_path: Path, layout: str
     want = _reference(layout)
     assert want, f"no reference for {layout} in {REFERENCE}"
     out = tmp_path / "s"
-    synthesize(out, SynthConfig(frames=3, annotated=1, width=48, height=36, seed=7, layout=layout), progress=False)
+    synthesize(out, _seed7(layout), progress=False)
     _assert_same_capture(out, want)
     explicit = tmp_path / "zeros"  # every phone option given as 0 is the default
-    synthesize(explicit, SynthConfig(frames=3, annotated=1, width=48, height=36, seed=7, layout=layout,
-                                     **{k: 0 for k in PHONE}), progress=False)
+    synthesize(explicit, _seed7(layout, **{k: 0 for k in PHONE}), progress=False)
     _assert_same_capture(explicit, want)
 
 
@@ -111,12 +134,11 @@ def test_the_reference_comparison_sees_a_changed_default(tmp_path: Path) -> None
     """The tolerance is for rounding, not for a change: another seed, or sensor noise, fails it."""
     want = _reference("one-sided")
     other = tmp_path / "seed8"
-    synthesize(other, SynthConfig(frames=3, annotated=1, width=48, height=36, seed=8, layout="one-sided"), progress=False)
+    synthesize(other, _seed7("one-sided", seed=8), progress=False)
     with pytest.raises(AssertionError):
         _assert_same_capture(other, want)
     noisy = tmp_path / "noise"
-    synthesize(noisy, SynthConfig(frames=3, annotated=1, width=48, height=36, seed=7, layout="one-sided",
-                                  sensor_noise=2.0), progress=False)
+    synthesize(noisy, _seed7("one-sided", sensor_noise=2.0), progress=False)
     got = _content(noisy)
     for rel in (r for r in want if r.startswith("capture/images/")):
         with pytest.raises(AssertionError, match="the default synth output changed"):
@@ -129,8 +151,7 @@ def test_the_reference_comparison_forgives_the_rounding_of_another_cpu(tmp_path:
     try:
         cv2.setUseOptimized(False)
         for layout in LAYOUTS:
-            synthesize(tmp_path / layout, SynthConfig(frames=3, annotated=1, width=48, height=36, seed=7,
-                                                      layout=layout), progress=False)
+            synthesize(tmp_path / layout, _seed7(layout), progress=False)
     finally:
         cv2.setUseOptimized(optimized)
     for layout in LAYOUTS:
@@ -288,3 +309,11 @@ def test_cli_phone_preset_and_explicit_options(tmp_path: Path) -> None:
     assert json.loads((out / "truth" / "scene.json").read_text())["config"]["motion_blur"] == 5
     res = runner.invoke(app, [*base, "--force", "--zoom", "3"])
     assert res.exit_code == 2 and "zoom" in res.output and "Traceback" not in res.output
+
+
+if __name__ == "__main__":
+    import sys
+
+    if sys.argv[1:] != ["--write-reference"]:
+        raise SystemExit("usage: python -m tests.evaluation.test_synth_phone --write-reference")
+    _write_reference()
