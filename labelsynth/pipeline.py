@@ -146,7 +146,7 @@ def fit_geometry(
     sdf = SDFField(geo.sdf)
     init_shape = sdf.initialise_shape([unit[i].forward for i in indices])
     sdf.initialise_background(bank.border_rgb)
-    sdf.initialise_colour(bank.mean_rgb)
+    sdf.initialise_colour(bank.border_rgb if init_shape == "plane" else bank.mean_rgb)
     sdf = sdf.to(device)
     grid, gstats = train_geometry(sdf, bank, geo, seed=seed, progress=progress)
     for p in sdf.parameters():
