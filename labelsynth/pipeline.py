@@ -24,7 +24,7 @@ from .device import pick_device
 from .errors import LabelsynthError
 from .export import LabelsWriter, write_masks_png
 from .geometry.fingerprint import GeometryFingerprint, require_unchanged
-from .geometry.sdf import SDFField
+from .geometry.sdf import SDFField, initial_surface_colour
 from .geometry.training import RayBank, train_geometry
 from .options import DeviceChoice, ExpandOptions, LabelMode, MeshFormat, positive_number
 from .outdir import PARTIAL_SUFFIX, building, check_out, check_writable, ensure_space, partial_path, previous_path
@@ -146,7 +146,7 @@ def fit_geometry(
     sdf = SDFField(geo.sdf)
     init_shape = sdf.initialise_shape([unit[i].forward for i in indices])
     sdf.initialise_background(bank.border_rgb)
-    sdf.initialise_colour(bank.border_rgb if init_shape == "plane" else bank.mean_rgb)
+    sdf.initialise_colour(initial_surface_colour(init_shape, bank.border_rgb, bank.mean_rgb))
     sdf = sdf.to(device)
     grid, gstats = train_geometry(sdf, bank, geo, seed=seed, progress=progress)
     for p in sdf.parameters():
