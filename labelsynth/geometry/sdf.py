@@ -7,6 +7,7 @@ semantic head reads), ``get_color`` the view-dependent appearance used only to f
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from typing import Annotated, Literal
 
@@ -85,7 +86,7 @@ def choose_init_shape(view_dirs) -> str:
     return "plane" if float(np.quantile(angles, PLANE_VIEW_QUANTILE)) <= PLANE_MAX_VIEW_ANGLE_DEG else "sphere"
 
 
-def initial_surface_colour(init_shape: str, rim_rgb, mean_rgb):
+def initial_surface_colour(init_shape: str, rim_rgb: Sequence[float], mean_rgb: Sequence[float]) -> Sequence[float]:
     """The colour the surface starts at: the images' rim colour (the background's start) for a
     plane, their mean colour for a sphere.
 

@@ -162,7 +162,7 @@ def _truth_hits(capture_dir):
 def test_table_capture_keeps_its_surface_over_the_object(table_run):
     """Issue 31's race: the background explains the white table at once, and the quickest descent
     of the colour loss is then a transparent box, over the object too; a surface gone from the box
-    never returns (before the plane started at the rim's colour: mean opacity 0.14 over the
+    never returns (before the plane started at the rim's colour: mean opacity 0.13 over the
     object's pixels after 250 steps, no fitted hit within 0.1 of the object). The geometry stage's
     own rendering must stay opaque where the object is."""
     import torch
