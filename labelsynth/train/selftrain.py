@@ -131,10 +131,23 @@ class SelfTrainResult:
                          + " | ".join(cells) + f" | {_fmt(r.mean_dice)} |")
         return "\n".join(lines)
 
+    def best(self) -> RoundScore | None:
+        """The round whose model scores the highest class mean on the held-out captures (round 0,
+        the starting model, included; the earlier round on a tie); None without held-out captures.
+
+        A further round is not always better (docs/training.md measures round 2 against round 1),
+        so the loop names the model to use rather than leaving the last one as the answer."""
+        scored = [r for r in self.rounds if r.mean_dice is not None]
+        return max(scored, key=lambda r: r.mean_dice) if scored else None
+
     def summary(self) -> str:
         last = self.rounds[-1]
-        return (f"self-training: {len(self.rounds) - 1} round(s) in {self.seconds:.0f} s -> {last.model}; "
-                f"results in {self.out / 'selftrain.json'}")
+        text = f"self-training: {len(self.rounds) - 1} round(s) in {self.seconds:.0f} s -> {last.model}"
+        best = self.best()
+        if best is not None:
+            text += (f"; best on the held-out captures: round {best.round} (class mean {_fmt(best.mean_dice)}"
+                     + (f", the last round {_fmt(last.mean_dice)}" if best is not last else "") + f") -> {best.model}")
+        return text + f"; results in {self.out / 'selftrain.json'}"
 
 
 def _fmt(v: float | None) -> str:
@@ -406,5 +419,7 @@ def selftrain(captures: list[str | Path], model: str | Path, out: str | Path, cf
         score(r, current, str(current), frames, started)
     result = SelfTrainResult(out, rows, time.perf_counter() - t0)
     state["table"] = result.table()
+    best = result.best()
+    state["best"] = None if best is None else {"round": best.round, "model": best.model, "mean_dice": best.mean_dice}
     save()
     return result

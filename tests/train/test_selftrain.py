@@ -127,6 +127,10 @@ def test_two_rounds_with_both(data, tmp_path, monkeypatch):
         assert report["split"]["train_frames"] == 4 and report["split"]["val_sources"] == [str(data["held"])]
     state = json.loads((out / "selftrain.json").read_text())
     assert len(state["rounds"]) == 3 and "| 2 |" in state["table"]
+    best = result.best()
+    assert best.mean_dice == max(r.mean_dice for r in result.rounds)
+    assert state["best"] == {"round": best.round, "model": best.model, "mean_dice": best.mean_dice}
+    assert f"best on the held-out captures: round {best.round}" in result.summary()
     assert _files(data["cap"]) == before  # predictions went into the loop's own view, not the capture
 
     # a rerun with the same settings continues: nothing is segmented, expanded or trained again
@@ -212,3 +216,16 @@ def test_bad_input_is_one_line(data, tmp_path):
     res = runner.invoke(app, ["selftrain", str(data["cap"]), "--model", str(data["m0"]), "--out", str(tmp_path / "o3"),
                               "--holdout", str(tmp_path / "bare")])
     assert res.exit_code == 2 and "needs annotations" in res.output
+
+
+def test_the_best_round_is_named_not_assumed_to_be_the_last(tmp_path):
+    def row(r, mean):
+        return st.RoundScore(r, f"m{r}.onnx", None, {"wound_bed": {"dice": mean}} if mean is not None else {}, mean)
+
+    result = st.SelfTrainResult(tmp_path, [row(0, 0.70), row(1, 0.84), row(2, 0.83)], 10.0)
+    assert result.best().round == 1
+    text = result.summary()
+    assert "best on the held-out captures: round 1 (class mean 0.840, the last round 0.830) -> m1.onnx" in text
+    assert st.SelfTrainResult(tmp_path, [row(0, 0.7), row(1, 0.7)], 1.0).best().round == 0  # a tie: the earlier
+    unscored = st.SelfTrainResult(tmp_path, [row(0, None), row(1, None)], 1.0)
+    assert unscored.best() is None and "held-out" not in unscored.summary()
