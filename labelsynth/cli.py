@@ -461,7 +461,8 @@ def selftrain(
     captures: list[Path] = typer.Argument(..., metavar="CAPTURE", help="Captures to label: every frame is segmented each round."),
     model: Path = typer.Option(..., "--model", help="The round-0 segmenter (ONNX, e.g. train's MODEL_DIR/model.onnx)."),
     out: Path = typer.Option(..., "--out", help="Folder for every round's masks, expansions and models, and selftrain.json."),
-    rounds: int = typer.Option(2, min=1, help="Rounds of segment -> expand -> train."),
+    rounds: int = typer.Option(1, min=1, help="Rounds of segment -> expand -> train (a larger --rounds continues a "
+                        "finished loop; measured, a second round has not beaten the first: docs/training.md)."),
     labels: str = typer.Option("predictions", help="predictions (the masks fused by expand) | both (with each capture's "
                                "expert frames) | raw (the masks as they are, not fused: the baseline)."),
     holdout: list[Path] = typer.Option([], "--holdout", help="A capture whose annotations/ score every round (and validate "
