@@ -27,11 +27,13 @@ whose truth holds the class). Arms (``--arms``; K = expert frames per capture):
     st-pred-acc  st-pred with ``--accumulate``: round 2 trains on round 1's fused labels and its own
     st-pred-conf st-pred with each pixel weighted by its fused label's confidence (``train``'s default;
                  the other self-training arms train unweighted)
+    st-pred-cross st-pred with ``--cross-fit``: from round 2, each capture segmented by a teacher trained on
+                 the other captures' labels of the round before, not by M1, which learnt its own
     st-truth     the exact truth of every frame of the self-training captures: the loop's own ceiling
                  (what its rounds would reach were their fused labels perfect)
   varied frames (``synth --phone`` captures: exposure, white balance, blur, noise, JPEG, distance, zoom)
     pa1, pb1, pc1, pd   as a1, b1, c1, d on phone-like captures, tested on phone-like captures
-    pst-raw, pst-pred, pst-both, pst-pred-warm, pst-pred-acc, pst-pred-conf, pst-truth   self-training on phone-like captures (``--phone-self-seeds``) from
+    pst-raw, pst-pred, pst-both, pst-pred-warm, pst-pred-acc, pst-pred-conf, pst-pred-cross, pst-truth   self-training on phone-like captures (``--phone-self-seeds``) from
                  M0 = pa1's model: the weak model whose masks disagree from view to view (it fails
                  where a video's exposure or distance drifts), the paper's main mode
 
@@ -63,7 +65,8 @@ TISSUES = ("granulation", "slough", "necrotic", "epithelial", "unknown")
 PLAIN, PHONE = "plain", "phone"
 VARIANTS = {"warm": ("--warm-start", "the model started from {source}'s weights"),
             "acc": ("--accumulate", "plus every earlier round's fused labels"),
-            "conf": ("--confidence-weight", "each pixel weighted by its labels.h5 confidence (train's default)")}
+            "conf": ("--confidence-weight", "each pixel weighted by its labels.h5 confidence (train's default)"),
+            "cross": ("--cross-fit", "each capture's masks from a teacher trained on the other captures' labels")}
 """Self-training arm suffixes (st-pred-warm, ...): the selftrain option, and what the table says of it
 (every other self-training arm trains unweighted, ``--no-confidence-weight``, like bK)."""
 
@@ -409,10 +412,12 @@ class Bench:
                 quality["predictions"] = self.label_quality(list(zip([here / "predictions" / n for n in names], truth)))
                 report = json.loads((here / "model" / "train.json").read_text())
                 source = "M0" if r == 1 else f"M{r - 1}"
-                what = {"raw": f"{source}'s masks of every frame, raw",
-                        "predictions": f"{source}'s masks fused by expand --labels predictions",
-                        "both": f"{source}'s masks + 1 expert frame fused by expand --labels both"}[mode]
-                if variant:
+                cross = variant == "cross" and r > 1  # round 1's masks are M0's in every variant
+                owner = "the fold teachers'" if cross else f"{source}'s"
+                what = {"raw": f"{owner} masks of every frame, raw",
+                        "predictions": f"{owner} masks fused by expand --labels predictions",
+                        "both": f"{owner} masks + 1 expert frame fused by expand --labels both"}[mode]
+                if variant and (variant != "cross" or cross):
                     what += ", " + VARIANTS[variant][1].format(source=source)
                 regime = "self-training" + (" (varied frames)" if kind == PHONE else "")
                 rows.append(self._row(arm, regime, what, kind, here / "model", report, quality, round=r))
@@ -548,12 +553,12 @@ def targets(by: dict[str, dict]) -> list[str]:
                 out.append(f"self-training ({where}): the ceiling ({ceiling}, exact truth of every frame) is only "
                            f"{room:+.3f} wound bed above (i): a +0.03 gain would put (ii) "
                            f"above it, so that part of the target cannot be met with this M0")
-        for mode in ("pred", "both", "pred-warm", "pred-acc", "pred-conf"):
+        for mode in ("pred", "both", "pred-warm", "pred-acc", "pred-conf", "pred-cross"):
             if f"{p}st-{mode} r1" in by and f"{p}st-{mode} r2" in by:
                 dw = wb(f"{p}st-{mode} r2") - wb(f"{p}st-{mode} r1")
                 dt = tm(f"{p}st-{mode} r2") - tm(f"{p}st-{mode} r1")
                 label = {"pred": "ii", "both": "iii", "pred-warm": "ii, warm start", "pred-acc": "ii, accumulated labels",
-                         "pred-conf": "ii, confidence-weighted"}[mode]
+                         "pred-conf": "ii, confidence-weighted", "pred-cross": "ii, cross-fitted teachers"}[mode]
                 out.append(f"self-training ({where}, {label}): round 2 - round 1 wound bed "
                            f"{dw:+.3f}, tissue mean {dt:+.3f} (target: not below: "
                            f"{'met' if min(dw, dt) >= 0 else 'NOT met'})")

@@ -484,6 +484,9 @@ def selftrain(
     seed: int = typer.Option(0, help="Random seed of expand and train."),
     warm_start: bool = typer.Option(False, "--warm-start", help="Each round's model starts from the previous round's weights (round 1 from --model's checkpoint.pt beside it) instead of from scratch."),
     accumulate: bool = typer.Option(False, "--accumulate", help="Each round trains on the fused labels of every round so far, not only its own."),
+    cross_fit: bool = typer.Option(False, "--cross-fit", help="From round 2, segment each capture with a model trained on the "
+                                   "other captures' labels of the round before (two folds; 2+ captures), not with one "
+                                   "that learnt its own labels."),
     force: bool = typer.Option(False, help="Start over in OUT (else a rerun with the same settings continues)."),
 ) -> None:
     """The self-training loop: a model's masks of new captures -> expand -> a new model, round after round."""
@@ -496,7 +499,7 @@ def selftrain(
                        min_confidence=min_confidence, confidence_weight=confidence_weight, expert_weight=expert_weight,
                        eval_every=eval_every, seed=seed)
     cfg = SelfTrainConfig(rounds=rounds, labels=labels, recipe=recipe, overrides=set_, seed=seed, device=device,
-                          train=tcfg, warm_start=warm_start, accumulate=accumulate)
+                          train=tcfg, warm_start=warm_start, accumulate=accumulate, cross_fit=cross_fit)
     result = run_selftrain(captures, model, out, cfg, holdout=holdout, also=also, force=force)
     Console(width=None if sys.stdout.isatty() else 200).print(result.table(), markup=False, highlight=False)
     typer.echo(result.summary())

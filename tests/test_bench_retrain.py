@@ -20,7 +20,7 @@ pytestmark = pytest.mark.xdist_group("bench_retrain")
 @pytest.fixture(scope="module")
 def bench(tmp_path_factory) -> Path:
     out = tmp_path_factory.mktemp("bench_retrain") / "out"
-    args = ["--out", str(out), "--arms", "d,a1,b1,c1,f1,a1-split,st-raw,pa1,pst-raw,pst-pred-warm,pst-pred-acc,pst-pred-conf,pst-truth", "--train-seeds", "1,2", "--val-seed", "3",
+    args = ["--out", str(out), "--arms", "d,a1,b1,c1,f1,a1-split,st-raw,pa1,pst-raw,pst-pred-warm,pst-pred-acc,pst-pred-conf,pst-pred-cross,pst-truth", "--train-seeds", "1,2", "--val-seed", "3",
             "--test-seeds", "4", "--self-seeds", "5,6", "--phone-train-seeds", "7,8", "--phone-val-seed", "9",
             "--phone-test-seeds", "10", "--phone-self-seeds", "11,12", "--frames", str(FRAMES), "--width", str(W), "--height", str(H), "--steps", "2",
             "--batch-size", "2", "--crop", "32", "--input-size", f"{W}x{H}", "--floor", "0.6",
@@ -42,7 +42,8 @@ def _train(out: Path, arm: str) -> dict:
 def test_every_arm_is_in_the_table(bench: Path) -> None:
     rows = _rows(bench)
     assert set(rows) == {"d", "a1", "b1", "c1", "f1", "a1-split", "st-raw r1", "pa1", "pst-raw r1", "pst-pred-warm r1",
-                         "pst-pred-warm r2", "pst-pred-acc r1", "pst-pred-acc r2", "pst-pred-conf r1", "pst-pred-conf r2", "pst-truth"}
+                         "pst-pred-warm r2", "pst-pred-acc r1", "pst-pred-acc r2", "pst-pred-conf r1", "pst-pred-conf r2", "pst-pred-cross r1",
+                         "pst-pred-cross r2", "pst-truth"}
     text = (bench / "stdout.txt").read_text()
     for arm in rows:
         assert f"| {arm} |" in text
@@ -149,6 +150,14 @@ def test_warm_self_training_arm_starts_each_round_from_the_last(bench: Path) -> 
     assert conf["train"]["confidence_weight"] is True and acc["train"]["confidence_weight"] is False
     assert conf["warm_start"] is False and conf["accumulate"] is False
     assert "ii, confidence-weighted): round 2 - round 1" in (bench / "stdout.txt").read_text()
+    # pst-pred-cross: round 2's masks from the two fold teachers, each taught by the other capture's round-1 labels
+    loop = bench / "selftrain" / "phone-predictions-cross"
+    assert json.loads((loop / "selftrain.json").read_text())["settings"]["config"]["cross_fit"] is True
+    for fold, other in ((1, "seed12"), (2, "seed11")):
+        taught = json.loads((loop / "round2" / "teachers" / f"fold{fold}" / "train.json").read_text())["sources"]
+        assert taught[0] == str(loop / "round1" / "expanded" / other / "labels.h5")
+    assert "fold teachers' masks" in rows["pst-pred-cross r2"]["what"] and "teacher" not in rows["pst-pred-cross r1"]["what"]
+    assert "ii, cross-fitted teachers): round 2 - round 1" in (bench / "stdout.txt").read_text()
 
 
 def test_loop_ceiling_trains_on_the_self_training_captures_truth(bench: Path) -> None:

@@ -13,6 +13,7 @@ OUT/
   round<R>/expanded/<C>/    ``expand`` of that view (labels.h5); ``raw``: round<R>/labels/<C>.h5 instead
   round<R>/model/           ``train``: model.onnx, train.json, curves.png (``warm_start``: from round R-1's weights;
                             ``accumulate``: on rounds 1..R's labels)
+  round<R>/teachers/fold<F>/ ``cross_fit``, R >= 2: the model that segments fold F's captures (train's files)
   round<R>/holdout/<H>/     the round's model's masks of held-out capture H, scored against its annotations/
 
 Every step's output is complete or absent (``outdir.building``, ``train``'s atomic files), so a
@@ -76,6 +77,10 @@ class SelfTrainConfig:
     round-0 model), with a fresh optimiser and schedule; else from scratch."""
     accumulate: bool = False
     """Round R trains on the labels of rounds 1..R (each capture once a round); else on round R's."""
+    cross_fit: bool = False
+    """From round 2 on, each capture is segmented by a teacher trained (from scratch, same settings) on
+    round R-1's labels of the *other* captures (two folds: captures 1, 3, ... and 2, 4, ...), not
+    by round R-1's model, which learnt that capture's own labels and mostly repeats them."""
 
     def check(self) -> None:
         """Every value, and the recipe expand will use (file, keys, types, ranges) and the device,
@@ -86,6 +91,9 @@ class SelfTrainConfig:
             self.rounds = whole_number(self.rounds, "--rounds", 1, MAX_ROUNDS)
             if self.labels not in MODES:
                 raise OptionError(f"--labels {self.labels!r}: expected one of {', '.join(MODES)}")
+            if self.cross_fit and self.warm_start:
+                raise OptionError("--cross-fit with --warm-start: a fold's teacher has no earlier weights of its "
+                                  "own to start from; choose one")
             self.expand_options().check()
         except LabelsynthError as exc:
             raise SelfTrainError(str(exc)) from None
@@ -237,6 +245,8 @@ def _same_settings(previous: dict | None, settings: dict) -> bool:
     a, b = json.loads(json.dumps(previous)), json.loads(json.dumps(settings))
     if not isinstance(a.get("config"), dict):
         return False  # not what this version writes: other settings
+    for key, default in asdict(SelfTrainConfig()).items():  # an option added since: its default then
+        a["config"].setdefault(key, default)
     a["config"].pop("rounds", None)
     b["config"].pop("rounds", None)
     return a == b
@@ -273,6 +283,22 @@ def _previous_settings(state_file: Path) -> dict | None:
 
 
 # --- the loop -----------------------------------------------------------------------------------
+def _fold_teacher(fold: int, labels_before: list[Path], here: Path, tcfg: TrainConfig, also: list[Path],
+                  holdout: list[Path], step: str, say: Callable[[str], None], progress: bool) -> Path:
+    """``cross_fit``: the model that segments the captures of ``fold`` (0: captures 1, 3, ...; 1:
+    2, 4, ...) this round, trained once (here/teachers/fold<F>) on the round before's labels of the
+    other fold's captures, so that no capture is labelled by a model that learnt its own labels."""
+    from .loop import train
+
+    fold_dir = here / "teachers" / f"fold{fold + 1}"
+    if not _model_done(fold_dir, tcfg.steps):
+        others = [*also, *(h5 for j, h5 in enumerate(labels_before) if j % 2 != fold)]
+        say(f"{step}: fold {fold + 1}/2's teacher, trained on the other fold's labels of the round before "
+            f"({len(others)} sources)")
+        train([*others, *holdout], fold_dir, tcfg, force=True, progress=progress, log=say)
+    return fold_dir / "model.onnx"
+
+
 def selftrain(captures: list[str | Path], model: str | Path, out: str | Path, cfg: SelfTrainConfig | None = None, *,
               holdout: list[str | Path] = (), also: list[str | Path] = (), force: bool = False,
               progress: bool = True, log: Callable[[str], None] | None = None) -> SelfTrainResult:
@@ -297,6 +323,9 @@ def selftrain(captures: list[str | Path], model: str | Path, out: str | Path, cf
     also = [Path(a) for a in also]
     if not captures:
         raise SelfTrainError("give at least one CAPTURE to label")
+    if cfg.cross_fit and len(captures) < 2:
+        raise SelfTrainError(f"--cross-fit needs at least 2 captures (a fold's teacher learns from the others); "
+                             f"got {len(captures)}")
     for group, paths in (("CAPTURE", captures), ("--holdout", holdout)):
         for p in paths:
             if not p.is_dir():
@@ -374,18 +403,29 @@ def selftrain(captures: list[str | Path], model: str | Path, out: str | Path, cf
     score(0, model, str(model), None, t0)
     current = model
     earlier: list[Path] = []  # the labels of the rounds before (``accumulate``)
+    labels_before: list[Path] = []  # the round before's labels, one per capture (``cross_fit``)
     for r in range(1, cfg.rounds + 1):
         started = time.perf_counter()
         here = out / f"round{r}"
+        tcfg = TrainConfig(**{**asdict(cfg.train), "device": cfg.device})
+        if cfg.warm_start:
+            tcfg.init = str(Path(current).parent / CHECKPOINT_FILE)
+        if holdout:
+            tcfg.val_captures = [str(h) for h in holdout]
+
         sources: list[Path] = []
         for i, (cap_dir, name) in enumerate(zip(captures, names)):
             step = f"round {r}/{cfg.rounds}, capture {i + 1}/{len(captures)} ({name})"
             masks = here / "predictions" / name
             if not masks.is_dir():
-                say(f"{step}: segment with {current}")
+                by = current
+                if cfg.cross_fit and r > 1:
+                    by = _fold_teacher(i % 2, labels_before, here, tcfg, also, holdout,
+                                       f"round {r}/{cfg.rounds}", say, progress)
+                say(f"{step}: segment with {by}")
                 from .segment import segment_capture
 
-                segment_capture(cap_dir, current, masks, device=cfg.device, progress=progress)
+                segment_capture(cap_dir, by, masks, device=cfg.device, progress=progress)
             view = here / "captures" / name
             if not view.is_dir():
                 capture_view(cap_dir, view, predictions=masks, keep_annotations=cfg.labels == "both")
@@ -404,11 +444,6 @@ def selftrain(captures: list[str | Path], model: str | Path, out: str | Path, cf
                     say(f"{step}: expanded in {time.perf_counter() - t:.0f} s")
             sources.append(h5)
         model_dir = here / "model"
-        tcfg = TrainConfig(**{**asdict(cfg.train), "device": cfg.device})
-        if cfg.warm_start:
-            tcfg.init = str(Path(current).parent / CHECKPOINT_FILE)
-        if holdout:
-            tcfg.val_captures = [str(h) for h in holdout]
         if not _model_done(model_dir, tcfg.steps):
             taught = [*also, *(earlier if cfg.accumulate else []), *sources]
             say(f"round {r}/{cfg.rounds}: train on {len(taught)} sources")
@@ -418,6 +453,7 @@ def selftrain(captures: list[str | Path], model: str | Path, out: str | Path, cf
             frames = json.loads((model_dir / "train.json").read_text())["split"]["train_frames"]
         current = model_dir / "model.onnx"
         earlier += sources
+        labels_before = sources
         score(r, current, str(current), frames, started)
     result = SelfTrainResult(out, rows, time.perf_counter() - t0)
     state["table"] = result.table()

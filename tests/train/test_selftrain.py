@@ -194,6 +194,37 @@ def test_accumulate_trains_each_round_on_every_rounds_labels(data, tmp_path):
         assert report["split"]["train_frames"] == 3 * len(rounds)
 
 
+def test_cross_fit_segments_each_capture_with_a_teacher_that_never_learnt_its_labels(data, tmp_path, monkeypatch):
+    """--cross-fit: round 1 segments with M0 as always; round 2 segments capture 1 with a teacher
+    trained on capture 2's round-1 labels only and capture 2 with one trained on capture 1's, and
+    trains round 2's model on both round-2 labellings."""
+    calls = _spy_segment(monkeypatch)
+    out = tmp_path / "cross"
+    cfg = SelfTrainConfig(rounds=2, labels="raw", device="cpu", cross_fit=True,
+                          train=TrainConfig(**TINY_TRAIN, val_split="none"))
+    selftrain([data["cap"], data["cap2"]], data["m0"], out, cfg, progress=False, log=lambda m: None)
+    labels = {r: [out / f"round{r}" / "labels" / f"{n}.h5" for n in ("capture", "capture-2")] for r in (1, 2)}
+    folds = [out / "round2" / "teachers" / f"fold{f}" for f in (1, 2)]
+    assert calls == [(data["cap"], data["m0"]), (data["cap2"], data["m0"]),
+                     (data["cap"], folds[0] / "model.onnx"), (data["cap2"], folds[1] / "model.onnx")]
+    for fold, taught in zip(folds, (labels[1][1], labels[1][0])):
+        assert json.loads((fold / "train.json").read_text())["sources"] == [str(taught)]
+    assert json.loads((out / "round2" / "model" / "train.json").read_text())["sources"] == [str(p) for p in labels[2]]
+    assert not (out / "round1" / "teachers").exists()  # M0 never saw these captures' labels
+    assert json.loads((out / "selftrain.json").read_text())["settings"]["config"]["cross_fit"] is True
+
+
+def test_cross_fit_needs_two_captures_and_no_warm_start(data, tmp_path):
+    runner = CliRunner()
+    base = ["selftrain", str(data["cap"]), "--model", str(data["m0"]), "--cross-fit"]
+    for extra, needle in (([], "--cross-fit needs at least 2 captures"),
+                          ([str(data["cap2"]), "--warm-start"], "--cross-fit with --warm-start")):
+        res = runner.invoke(app, [*base, *extra, "--out", str(tmp_path / "o")])
+        errors = [ln for ln in res.output.splitlines() if ln.startswith("labelsynth: error:")]
+        assert res.exit_code == 2 and len(errors) == 1 and needle in errors[0], res.output
+        assert not (tmp_path / "o").exists()
+
+
 def test_bad_input_is_one_line(data, tmp_path):
     runner = CliRunner()
     base = ["selftrain", str(data["cap"]), "--model", str(data["m0"]), "--out", str(tmp_path / "o")]
