@@ -622,6 +622,9 @@ def file_cases() -> list[Case]:
     add("selftrain-both-without-annotations", [*SELFTRAIN, "--labels", "both"], ("annotations",),
         lambda w: __import__("shutil").rmtree(w.cap / "annotations"))
     add("selftrain-capture-twice", [*SELFTRAIN[:2], "{cap}", *SELFTRAIN[2:]], ("{cap}",))
+    add("selftrain-cross-fit-one-capture", [*SELFTRAIN, "--cross-fit"], ("--cross-fit", "2 captures"))
+    add("selftrain-cross-fit-warm-start", [*SELFTRAIN[:2], "{root}/small", *SELFTRAIN[2:], "--cross-fit", "--warm-start"],
+        ("--cross-fit", "--warm-start"), lambda w: _small_capture(w))
     add("selftrain-also-labels-truncated", [*SELFTRAIN, "--also", "{h5}"], ("labels.h5",), truncate("{h5}"))
     add("selftrain-also-other-classes", [*SELFTRAIN, "--also", "{h5}"], ("--also", "class table"),
         h5_edit(lambda f: f.attrs.__setitem__("classes_json", json.dumps({"classes": [
