@@ -185,3 +185,24 @@ def make_table_capture(root: Path, frames: int = 12, size: int = 48, annotated=(
         views.append((cam, rgb, mask))
     _write_views(capture, truth, size, views, annotated, {"name": "object", "color": [255, 80, 40], "wound_bed": True})
     return capture, truth
+
+
+def table_truth_hits(capture_dir, behind: float = 1.2):
+    """Per frame: the exact scene's first hit of every pixel (world), on the object or not."""
+    from labelsynth.capture import load_capture
+
+    cap = load_capture(capture_dir)
+    obj, table = table_scene(behind)
+    scene = trimesh.util.concatenate([obj, table])
+    out = []
+    for f in cap.frames:
+        o, d = f.camera.rays()
+        loc, ray, tri = scene.ray.intersects_location(o, d, multiple_hits=False)
+        hit = np.zeros(len(o), bool)
+        hit[ray] = True
+        points = np.zeros((len(o), 3))
+        points[ray] = loc
+        on_obj = np.zeros(len(o), bool)
+        on_obj[ray[tri < len(obj.faces)]] = True
+        out.append((hit, points, on_obj))
+    return cap, out

@@ -18,7 +18,7 @@ from labelsynth.render.support import SurfaceSupport
 from labelsynth.render.surface import SurfaceCaster
 
 from ..conftest import TINY_OVERRIDES
-from ..scenes import make_table_capture, table_scene
+from ..scenes import make_table_capture, table_scene, table_truth_hits
 
 ANNOTATED = (0, 4, 8)
 WHITE_ABOVE = 0.6  # make_table_capture's saturated top
@@ -137,27 +137,6 @@ def table_run(tmp_path_factory):
     return capture, truth, root / "out"
 
 
-def _truth_hits(capture_dir):
-    """Per frame: the exact scene's first hit of every pixel (world), on the object or not."""
-    from labelsynth.capture import load_capture
-
-    cap = load_capture(capture_dir)
-    obj, table = table_scene()
-    scene = trimesh.util.concatenate([obj, table])
-    out = []
-    for f in cap.frames:
-        o, d = f.camera.rays()
-        loc, ray, tri = scene.ray.intersects_location(o, d, multiple_hits=False)
-        hit = np.zeros(len(o), bool)
-        hit[ray] = True
-        points = np.zeros((len(o), 3))
-        points[ray] = loc
-        on_obj = np.zeros(len(o), bool)
-        on_obj[ray[tri < len(obj.faces)]] = True
-        out.append((hit, points, on_obj))
-    return cap, out
-
-
 @pytest.mark.xdist_group("table")
 def test_table_capture_keeps_its_surface_over_the_object(table_run):
     """Issue 31's race: the background explains the white table at once, and the quickest descent
@@ -171,7 +150,7 @@ def test_table_capture_keeps_its_surface_over_the_object(table_run):
     from labelsynth.rundir import RunFolder
 
     capture_dir, _, out = table_run
-    cap, hits = _truth_hits(capture_dir)
+    cap, hits = table_truth_hits(capture_dir)
     run = RunFolder(out)
     assert run.read_run().geometry["init_shape"] == "plane"  # the premise
     fitted = run.load_field()
@@ -203,7 +182,7 @@ def test_textureless_saturated_patch_has_no_hole_and_backdrop_stays_background(t
     from labelsynth.rundir import RunFolder
 
     capture_dir, _, out = table_run
-    cap, hits = _truth_hits(capture_dir)
+    cap, hits = table_truth_hits(capture_dir)
     view = FieldRenderer(RunFolder(out).load_field())
     cams = cap.unit_cameras()
     white, white_hit, backdrop, backdrop_object = 0, 0, 0, 0
