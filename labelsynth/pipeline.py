@@ -144,7 +144,7 @@ def fit_geometry(
     bank = RayBank(cams, images, device)
     del images
     sdf = SDFField(geo.sdf)
-    init_shape = sdf.initialise_shape([unit[i].forward for i in indices])
+    init_shape = sdf.initialise_shape([unit[i].forward for i in indices], [unit[i].c2w[:3, 0] for i in indices])
     sdf.initialise_background(bank.border_rgb)
     sdf.initialise_colour(initial_surface_colour(init_shape, bank.border_rgb, bank.mean_rgb))
     sdf = sdf.to(device)

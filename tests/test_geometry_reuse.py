@@ -136,3 +136,22 @@ def test_fingerprint_api_for_other_commands(tiny_expanded):
     assert GeometryFingerprint.from_json(stored.to_json(), "x") == stored
     with pytest.raises(GeometryChanged, match="x: its record of what the geometry was fitted on is not readable"):
         GeometryFingerprint.from_json({**stored.to_json(), "seed": "zero"}, "x")
+
+
+def test_a_record_from_before_a_recipe_key_existed_matches_that_keys_default(tiny_expanded):
+    """A geometry fitted before ``geometry.sdf.plane_normal`` existed was fitted facing the views (the
+    default): its record lacks the key, and reusing it needs no refit unless the key is set otherwise."""
+    import copy
+    import dataclasses
+
+    capture = load_capture(tiny_expanded.capture_dir)
+    fitted = load_field(RunFolder(tiny_expanded.out).field_path)
+    older = copy.deepcopy(fitted.fitted_on.geometry)
+    del older["sdf"]["plane_normal"]
+    del older["opacity_warmup"]
+    stored = dataclasses.replace(fitted.fitted_on, geometry=older)
+    require_unchanged(stored, capture, where="field.pt", geometry=fitted.recipe.geometry, seed=0)
+    turned = copy.deepcopy(fitted.recipe.geometry)
+    turned.sdf.plane_normal = "camera-axes"
+    with pytest.raises(GeometryChanged, match=r"geometry.sdf.plane_normal 'views' -> 'camera-axes'"):
+        require_unchanged(stored, capture, where="field.pt", geometry=turned, seed=0)

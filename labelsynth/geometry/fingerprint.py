@@ -110,7 +110,8 @@ class GeometryFingerprint:
             if detail:
                 out["cameras"] = detail
         if "geometry recipe" in parts:
-            diff = _dict_changes(self.geometry, current.geometry, "geometry")
+            stored = _with_defaults(self.geometry, dataclasses.asdict(GeometryConfig()))
+            diff = _dict_changes(stored, current.geometry, "geometry")
             if diff:
                 out["geometry recipe"] = ", ".join(diff[:3]) + (f" and {len(diff) - 3} more" if len(diff) > 3 else "")
         if "seed" in parts and self.seed != current.seed:
@@ -178,6 +179,14 @@ def _frame_changes(before: dict[str, str], after: dict[str, str], membership: bo
         if removed:
             parts.append(f"{_count(removed, 'frame')} removed ({_names(removed)})")
     return ", ".join(parts)
+
+
+def _with_defaults(stored: Any, defaults: Any) -> Any:
+    """``stored`` with the keys it lacks taken from ``defaults``: a geometry fitted before a
+    recipe key existed was fitted as that key's default."""
+    if not (isinstance(stored, dict) and isinstance(defaults, dict)):
+        return stored
+    return {**defaults, **{key: _with_defaults(value, defaults.get(key)) for key, value in stored.items()}}
 
 
 def _dict_changes(before: Any, after: Any, prefix: str) -> list[str]:

@@ -41,6 +41,12 @@ class SDFConfig:
     """Width of the colour network."""
     init_shape: Literal["auto", "sphere", "plane"] = "auto"
     """Shape the SDF starts as (``SDFField.initialise_shape``; auto: from the cameras)."""
+    plane_normal: Literal["views", "camera-axes"] = "views"
+    """Which way a plane start faces (``plane_normal``): views, the reverse of the mean viewing
+    direction; camera-axes, square to every camera's x axis (upright cameras: the ground's, a
+    table's normal), falling back to views where the axes do not fix it. On issue 31's table
+    capture camera-axes forms the saturated top in more seeds but is better or worse than views
+    depending on the schedule's length (docs/benchmarks.md, Real photographs), so views stays."""
     init_radius: OpenUnitInterval = 0.5
     """Sphere initialisation: radius in the unit cube."""
     init_variance: Annotated[float, Range(0.0, 2.0, low_open=True)] = 0.3
@@ -84,6 +90,42 @@ def choose_init_shape(view_dirs) -> str:
         return "sphere"
     angles = np.degrees(np.arccos(np.clip(dirs @ (mean / norm), -1.0, 1.0)))
     return "plane" if float(np.quantile(angles, PLANE_VIEW_QUANTILE)) <= PLANE_MAX_VIEW_ANGLE_DEG else "sphere"
+
+
+# Cameras are held upright: their x axes (image rows) lie parallel to the ground, to a table, to
+# skin filmed squarely, so the one direction square to all of them is that surface's normal. It is
+# trusted only where the x axes spread over a plane (a single sweep without turning leaves them
+# parallel and the direction undetermined) and every camera sees the plane from its front side.
+PLANE_AXES_MIN_SPREAD = 0.1  # the second-smallest eigenvalue of the x axes' scatter (of 1/2 at best)
+PLANE_AXES_MAX_FLATNESS = 0.05  # the smallest, relative to the second: the axes lie in one plane
+PLANE_AXES_MAX_VIEW_ANGLE_DEG = 75.0  # no camera sees the plane more obliquely than this
+
+
+def plane_normal(view_dirs: Sequence, right_dirs: Sequence | None = None) -> "np.ndarray":
+    """The unit normal of the plane the SDF starts as, towards the cameras.
+
+    The direction square to every camera's x axis when those axes are known, spread and flat
+    (see the constants above), else the reverse of the mean viewing direction. The mean viewing
+    direction is off the surface's normal by the cameras' average tilt: a camera arc that looks
+    down at a table from 35-55 degrees gives a plane tilted 43 degrees from the table, and a
+    textureless table never tells the colour loss to turn it (issue 31).
+    """
+    import numpy as np
+
+    dirs = np.asarray(view_dirs, dtype=np.float64).reshape(-1, 3)
+    dirs = dirs / np.linalg.norm(dirs, axis=1, keepdims=True)
+    mean = -dirs.mean(0)
+    mean = mean / np.linalg.norm(mean)
+    if right_dirs is None:
+        return mean
+    axes = np.asarray(right_dirs, dtype=np.float64).reshape(-1, 3)
+    axes = axes / np.linalg.norm(axes, axis=1, keepdims=True)
+    values, vectors = np.linalg.eigh(axes.T @ axes / len(axes))
+    if values[1] < PLANE_AXES_MIN_SPREAD or values[0] > PLANE_AXES_MAX_FLATNESS * values[1]:
+        return mean
+    normal = vectors[:, 0] if vectors[:, 0] @ mean > 0 else -vectors[:, 0]
+    angles = np.degrees(np.arccos(np.clip(-dirs @ normal, -1.0, 1.0)))
+    return normal if float(angles.max()) <= PLANE_AXES_MAX_VIEW_ANGLE_DEG else mean
 
 
 def initial_surface_colour(init_shape: str, rim_rgb: Sequence[float], mean_rgb: Sequence[float]) -> Sequence[float]:
@@ -151,14 +193,15 @@ class SDFField(nn.Module):
 
         self.register_buffer("inv_s_floor", torch.tensor(1.0), persistent=True)
 
-    def initialise_shape(self, view_dirs) -> str:
+    def initialise_shape(self, view_dirs: Sequence, right_dirs: Sequence | None = None) -> str:
         """Start from a shape the cameras can see: a plane facing them or a sphere.
 
         A phone filming a wound stays on one side of the body, and a plane through the
         region of interest, facing the cameras, is far closer to the truth than a sphere
         (from a sphere the surface has to travel half the cube: measured, wound-bed Dice
         0.31 instead of 0.98 with the fast recipe). Cameras around an object get the
-        sphere. ``choose_init_shape`` decides; returns the shape chosen.
+        sphere. ``choose_init_shape`` decides; returns the shape chosen. ``right_dirs``: the
+        cameras' x axes, which ``plane_normal: camera-axes`` reads (without them it faces the views).
         """
         import numpy as np
 
@@ -167,8 +210,8 @@ class SDFField(nn.Module):
         if shape == "auto":
             shape = choose_init_shape(dirs)
         if shape == "plane":
-            mean = dirs.mean(0)
-            normal = torch.tensor(-mean / np.linalg.norm(mean), dtype=torch.float32)  # towards the cameras
+            axes = right_dirs if self.cfg.plane_normal == "camera-axes" else None
+            normal = torch.tensor(plane_normal(dirs, axes), dtype=torch.float32)  # towards the cameras
             with torch.no_grad():
                 # softplus(z) - softplus(-z) = z: two hidden units make sdf = n . x exactly.
                 self.sdf_l0.weight[:2].zero_()

@@ -237,3 +237,57 @@ def test_each_backward_pass_of_the_encoding_pays_only_for_what_it_asks(monkeypat
     gx_slow, gt_slow = torch.autograd.grad(slow, [x, enc.table])
     assert torch.allclose(gx, gx_slow, atol=1e-4)
     assert torch.allclose(enc.table.grad, gt_slow, atol=1e-5)
+
+
+def _upright_rig(elevations_deg, azimuths_deg, tilt_deg: float = 0.0):
+    """(forwards, x axes) of upright cameras (look_at with world z up) on an arc looking at the origin,
+    the whole rig then turned by ``tilt_deg`` about the y axis (so the ground's normal is turned too)."""
+    from labelsynth.cameras import look_at
+
+    t = np.radians(tilt_deg)
+    turn = np.array([[np.cos(t), 0.0, np.sin(t)], [0.0, 1.0, 0.0], [-np.sin(t), 0.0, np.cos(t)]])
+    forwards, axes = [], []
+    for el in np.radians(elevations_deg):
+        for az in np.radians(azimuths_deg):
+            eye = 3.0 * np.array([np.cos(el) * np.cos(az), np.cos(el) * np.sin(az), np.sin(el)])
+            c2w = look_at(eye, np.zeros(3))
+            forwards.append(turn @ -c2w[:3, 2])
+            axes.append(turn @ c2w[:3, 0])
+    return np.array(forwards), np.array(axes), turn @ np.array([0.0, 0.0, 1.0])
+
+
+def test_plane_normal_from_upright_cameras_x_axes_or_the_views():
+    """``geometry.sdf.plane_normal``: square to the cameras' x axes when they spread over a plane and
+    every camera sees its front, else the reverse of the mean viewing direction (issue 31's table)."""
+    from labelsynth.geometry.sdf import plane_normal
+
+    def angle(a, b):
+        return float(np.degrees(np.arccos(np.clip(a @ b / np.linalg.norm(a) / np.linalg.norm(b), -1, 1))))
+
+    forwards, axes, ground = _upright_rig([35, 55], np.linspace(-60, 60, 12), tilt_deg=20.0)
+    views = plane_normal(forwards)
+    assert angle(views, -forwards.mean(0)) < 1e-6 and angle(views, ground) > 30  # cameras 35-55 deg above the table
+    assert angle(plane_normal(forwards, axes), ground) < 1e-6  # the x axes give the table's normal, turned rig or not
+    assert abs(np.linalg.norm(plane_normal(forwards, axes)) - 1) < 1e-9
+    # one sweep without turning: the x axes are parallel and fix no normal
+    sweep, sweep_axes, _ = _upright_rig(np.linspace(40, 80, 8), [0.0])
+    assert angle(plane_normal(sweep, sweep_axes), -sweep.mean(0)) < 1e-6
+    # x axes that fix a normal some camera sees edge-on (a wall filmed level): the views decide
+    level, level_axes, _ = _upright_rig([0, 5], np.linspace(-40, 40, 9))
+    assert angle(plane_normal(level, level_axes), -level.mean(0)) < 1e-6
+
+
+def test_plane_normal_key_reaches_the_start_plane():
+    """The plane the SDF starts as faces the views by default and the x axes' normal with camera-axes."""
+    from labelsynth.geometry.sdf import SDFConfig, SDFField
+
+    forwards, axes, ground = _upright_rig([35, 55], np.linspace(-60, 60, 12))
+    for key, expected in (("views", -forwards.mean(0)), ("camera-axes", ground)):
+        field = SDFField(SDFConfig(log2_table=12, levels=4, plane_normal=key))
+        assert field.initialise_shape(forwards, axes) == "plane"
+        start = field.sdf_l0.weight[0, :3].detach().numpy()
+        assert np.allclose(start, expected / np.linalg.norm(expected), atol=1e-6), key
+    field = SDFField(SDFConfig(log2_table=12, levels=4, plane_normal="camera-axes"))
+    field.initialise_shape(forwards)  # no x axes given: the views decide
+    assert np.allclose(field.sdf_l0.weight[0, :3].detach().numpy(), -forwards.mean(0) / np.linalg.norm(forwards.mean(0)),
+                       atol=1e-6)
