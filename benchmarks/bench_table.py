@@ -31,38 +31,14 @@ import numpy as np
 REPO = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(REPO))  # tests.scenes builds the capture and its exact scene
 
-ANNOTATED = (0, 4, 8)
-WHITE_ABOVE = 0.6
-NEAR = 0.1
-
-
 def score(capture_dir: Path, out: Path) -> dict:
-    from labelsynth.capture.masks import read_mask
-    from labelsynth.render.renderer import FieldRenderer
+    """``tests.scenes.table_scores`` (what the table test counts), its foreground Dice, and the
+    geometry stage's training PSNR and start shape from run.json."""
     from labelsynth.rundir import RunFolder
-    from tests.scenes import table_truth_hits
+    from tests.scenes import table_scores
 
-    cap, hits = table_truth_hits(capture_dir)
-    run = RunFolder(out)
-    view = FieldRenderer(run.load_field())
-    counts = dict.fromkeys(("top", "top_hit", "object", "object_hit", "backdrop", "backdrop_object", "inter",
-                            "union"), 0)
-    for i, (frame, cam) in enumerate(zip(cap.frames, cap.unit_cameras())):
-        hit, points, on_obj = hits[i]
-        fitted_hit, fitted_points, _, _ = view.caster().cast(*cam.rays())
-        near = fitted_hit & (np.linalg.norm(cap.normalization.to_world(fitted_points) - points, axis=1) < NEAR)
-        top = on_obj & (points[:, 2] > WHITE_ABOVE)
-        counts["top"] += int(top.sum())
-        counts["top_hit"] += int((top & near).sum())
-        counts["object"] += int(on_obj.sum())
-        counts["object_hit"] += int((on_obj & near).sum())
-        if i not in ANNOTATED:
-            pred = read_mask(out / "masks" / f"{frame.name}.png", None, cap.classes).ravel() == 1
-            counts["backdrop"] += int((~hit).sum())
-            counts["backdrop_object"] += int(((~hit) & pred).sum())
-            counts["inter"] += int((pred & on_obj).sum())
-            counts["union"] += int(pred.sum() + on_obj.sum())
-    geometry = run.read_run().geometry
+    counts = table_scores(capture_dir, out)
+    geometry = RunFolder(out).read_run().geometry
     return {**counts, "dice": 2 * counts["inter"] / max(counts["union"], 1), "psnr": geometry["final_psnr"],
             "init_shape": geometry.get("init_shape")}
 
@@ -88,7 +64,7 @@ def main() -> None:
     args.work.mkdir(parents=True, exist_ok=True)
     case = args.work / "case"
     if not (case / "capture" / "transforms.json").is_file():
-        make_table_capture(case, annotated=ANNOTATED, white_above=WHITE_ABOVE)
+        make_table_capture(case)
     overrides = TINY_OVERRIDES + args.overrides
     tag = hashlib.sha1("\n".join(args.overrides).encode()).hexdigest()[:8] if args.overrides else "tests"
     rows = []

@@ -151,8 +151,14 @@ def table_scene(behind: float = 1.2) -> tuple[trimesh.Trimesh, trimesh.Trimesh]:
     return trimesh.util.concatenate([box, ball]), table
 
 
-def make_table_capture(root: Path, frames: int = 12, size: int = 48, annotated=(0, 4, 8),
-                       table: float = 0.97, backdrop: float = 0.03, white_above: float = 0.6,
+TABLE_ANNOTATED = (0, 4, 8)
+"""``make_table_capture``'s annotated frames."""
+TABLE_WHITE_ABOVE = 0.6
+"""``make_table_capture``: the object is saturated white above this height."""
+
+
+def make_table_capture(root: Path, frames: int = 12, size: int = 48, annotated=TABLE_ANNOTATED,
+                       table: float = 0.97, backdrop: float = 0.03, white_above: float = TABLE_WHITE_ABOVE,
                        behind: float = 1.2) -> tuple[Path, Path]:
     """Real photographs' hard parts in a tiny capture (issue 31): an object on a white,
     textureless table, filmed from above on one side as DTU films its objects, with a dark
@@ -206,3 +212,36 @@ def table_truth_hits(capture_dir, behind: float = 1.2):
         on_obj[ray[tri < len(obj.faces)]] = True
         out.append((hit, points, on_obj))
     return cap, out
+
+
+def table_scores(capture_dir, out, near: float = 0.1) -> dict[str, int]:
+    """How a fit of ``make_table_capture`` (with its default annotated frames and white top) did,
+    counted over every frame: ``top`` rays through the saturated top and ``top_hit`` of them whose
+    fitted surface hit lies within ``near`` of the truth; ``object`` / ``object_hit`` the same over
+    all of the object's rays; over the unannotated frames' masks (OUT/masks), ``backdrop`` pixels
+    that see the backdrop and ``backdrop_object`` of them labelled object, and ``inter`` / ``union``
+    of the object's pixels and the masks' (foreground Dice = 2 inter / union)."""
+    from labelsynth.capture.masks import read_mask
+    from labelsynth.render.renderer import FieldRenderer
+    from labelsynth.rundir import RunFolder
+
+    cap, hits = table_truth_hits(capture_dir)
+    view = FieldRenderer(RunFolder(out).load_field())
+    counts = dict.fromkeys(("top", "top_hit", "object", "object_hit", "backdrop", "backdrop_object", "inter",
+                            "union"), 0)
+    for i, (frame, cam) in enumerate(zip(cap.frames, cap.unit_cameras())):
+        hit, points, on_obj = hits[i]
+        fitted_hit, fitted_points, _, _ = view.caster().cast(*cam.rays())
+        close = fitted_hit & (np.linalg.norm(cap.normalization.to_world(fitted_points) - points, axis=1) < near)
+        top = on_obj & (points[:, 2] > TABLE_WHITE_ABOVE)
+        counts["top"] += int(top.sum())
+        counts["top_hit"] += int((top & close).sum())
+        counts["object"] += int(on_obj.sum())
+        counts["object_hit"] += int((on_obj & close).sum())
+        if i not in TABLE_ANNOTATED:
+            pred = read_mask(Path(out) / "masks" / f"{frame.name}.png", None, cap.classes).ravel() == 1
+            counts["backdrop"] += int((~hit).sum())
+            counts["backdrop_object"] += int(((~hit) & pred).sum())
+            counts["inter"] += int((pred & on_obj).sum())
+            counts["union"] += int(pred.sum() + on_obj.sum())
+    return counts
