@@ -115,6 +115,15 @@ def build_config(cls: type[T], data: Any, where: str) -> T:
     return config
 
 
+def with_defaults(stored: Any, defaults: Any) -> Any:
+    """A recorded config (a plain mapping) with every key it lacks, at any depth, taken from
+    ``defaults`` (``dataclasses.asdict`` of the config today): a run recorded before a key existed
+    ran as that key's default, so comparing it with today's settings must not see a change."""
+    if not (isinstance(stored, dict) and isinstance(defaults, dict)):
+        return stored
+    return {**defaults, **{key: with_defaults(value, defaults.get(key)) for key, value in stored.items()}}
+
+
 def _relations(config: Any, where: str) -> None:
     """A config's ``validate()`` (relations between its fields), its ValueError made one line."""
     validate = getattr(config, "validate", None)

@@ -25,6 +25,7 @@ from pathlib import Path
 from typing import Any
 
 from .. import __version__
+from ..config import with_defaults
 from ..errors import LabelsynthError
 from .config import GeometryConfig
 
@@ -110,7 +111,7 @@ class GeometryFingerprint:
             if detail:
                 out["cameras"] = detail
         if "geometry recipe" in parts:
-            stored = _with_defaults(self.geometry, dataclasses.asdict(GeometryConfig()))
+            stored = with_defaults(self.geometry, dataclasses.asdict(GeometryConfig()))
             diff = _dict_changes(stored, current.geometry, "geometry")
             if diff:
                 out["geometry recipe"] = ", ".join(diff[:3]) + (f" and {len(diff) - 3} more" if len(diff) > 3 else "")
@@ -179,14 +180,6 @@ def _frame_changes(before: dict[str, str], after: dict[str, str], membership: bo
         if removed:
             parts.append(f"{_count(removed, 'frame')} removed ({_names(removed)})")
     return ", ".join(parts)
-
-
-def _with_defaults(stored: Any, defaults: Any) -> Any:
-    """``stored`` with the keys it lacks taken from ``defaults``: a geometry fitted before a
-    recipe key existed was fitted as that key's default."""
-    if not (isinstance(stored, dict) and isinstance(defaults, dict)):
-        return stored
-    return {**defaults, **{key: _with_defaults(value, defaults.get(key)) for key, value in stored.items()}}
 
 
 def _dict_changes(before: Any, after: Any, prefix: str) -> list[str]:

@@ -34,6 +34,7 @@ import numpy as np
 
 from ..capture.view import capture_view
 from ..classes import BACKGROUND_ID, WOUND_BED, ClassMap
+from ..config import with_defaults
 from ..errors import LabelsynthError
 from ..outdir import check_apart, check_writable, write_text_atomic
 from ..progress import console
@@ -245,8 +246,7 @@ def _same_settings(previous: dict | None, settings: dict) -> bool:
     a, b = json.loads(json.dumps(previous)), json.loads(json.dumps(settings))
     if not isinstance(a.get("config"), dict):
         return False  # not what this version writes: other settings
-    for key, default in asdict(SelfTrainConfig()).items():  # an option added since: its default then
-        a["config"].setdefault(key, default)
+    a["config"] = with_defaults(a["config"], asdict(SelfTrainConfig()))  # options added since: their defaults then
     a["config"].pop("rounds", None)
     b["config"].pop("rounds", None)
     return a == b

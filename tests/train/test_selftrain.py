@@ -5,6 +5,7 @@ held-out captures, and never writes into a capture; a rerun continues instead of
 from __future__ import annotations
 
 import json
+from dataclasses import asdict
 from pathlib import Path
 
 import cv2
@@ -260,3 +261,20 @@ def test_the_best_round_is_named_not_assumed_to_be_the_last(tmp_path):
     assert st.SelfTrainResult(tmp_path, [row(0, 0.7), row(1, 0.7)], 1.0).best().round == 0  # a tie: the earlier
     unscored = st.SelfTrainResult(tmp_path, [row(0, None), row(1, None)], 1.0)
     assert unscored.best() is None and "held-out" not in unscored.summary()
+
+
+def test_a_loop_recorded_before_an_option_existed_continues_as_that_options_default():
+    """selftrain.json written by an older version lacks options added since, at any depth (the
+    nested training config too): those ran as their defaults, so the loop continues; a recorded
+    value that differs from today's still refuses."""
+    cfg = SelfTrainConfig(rounds=2, train=TrainConfig(**TINY_TRAIN))
+    settings = {"captures": ["a"], "model": "m0.onnx", "holdout": [], "config": json.loads(json.dumps(asdict(cfg)))}
+    older = json.loads(json.dumps(settings))
+    del older["config"]["cross_fit"]  # a top-level option added since
+    nested = next(iter(older["config"]["train"]))
+    del older["config"]["train"][nested]  # and one inside the training config
+    assert st._same_settings(older, settings)
+    changed = json.loads(json.dumps(older))
+    changed["config"]["train"]["steps"] = TINY_TRAIN["steps"] + 1
+    assert not st._same_settings(changed, settings)
+    assert not st._same_settings({"config": "not a mapping"}, settings)
