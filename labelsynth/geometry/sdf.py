@@ -70,6 +70,15 @@ PLANE_MAX_VIEW_ANGLE_DEG = 60.0
 PLANE_VIEW_QUANTILE = 0.9  # ...for this share of the cameras (a few stray frames may be oblique)
 
 
+def _unit_directions(view_dirs) -> tuple["np.ndarray", "np.ndarray"]:
+    """The viewing directions as unit vectors (N, 3) and their mean (not renormalised)."""
+    import numpy as np
+
+    dirs = np.asarray(view_dirs, dtype=np.float64).reshape(-1, 3)
+    dirs = dirs / np.linalg.norm(dirs, axis=1, keepdims=True)
+    return dirs, dirs.mean(0)
+
+
 def choose_init_shape(view_dirs) -> str:
     """``plane`` when the cameras look from one side at a plane facing them, else ``sphere``.
 
@@ -82,9 +91,7 @@ def choose_init_shape(view_dirs) -> str:
     """
     import numpy as np
 
-    dirs = np.asarray(view_dirs, dtype=np.float64).reshape(-1, 3)
-    dirs = dirs / np.linalg.norm(dirs, axis=1, keepdims=True)
-    mean = dirs.mean(0)
+    dirs, mean = _unit_directions(view_dirs)
     norm = float(np.linalg.norm(mean))
     if norm < 1e-6:
         return "sphere"
@@ -112,10 +119,8 @@ def plane_normal(view_dirs: Sequence, right_dirs: Sequence | None = None) -> "np
     """
     import numpy as np
 
-    dirs = np.asarray(view_dirs, dtype=np.float64).reshape(-1, 3)
-    dirs = dirs / np.linalg.norm(dirs, axis=1, keepdims=True)
-    mean = -dirs.mean(0)
-    mean = mean / np.linalg.norm(mean)
+    dirs, mean = _unit_directions(view_dirs)
+    mean = -mean / np.linalg.norm(mean)
     if right_dirs is None:
         return mean
     axes = np.asarray(right_dirs, dtype=np.float64).reshape(-1, 3)
