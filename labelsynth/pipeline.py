@@ -63,8 +63,8 @@ class ExpandResult:
 
     def _fit_quality(self) -> str:
         """How well the geometry stage reproduced the images (its training PSNR), the number that
-        shows a failed fit (issue 31's table: 15-17 dB where the object never formed, 28-41 dB where
-        it did); empty when the geometry was reused rather than fitted."""
+        shows a failed fit (issue 31's table: 15-17 dB where the object never formed, 28-41 dB in the
+        best fits; docs/outputs.md); empty when the geometry was reused rather than fitted."""
         psnr = self.geometry.get("final_psnr")
         return "" if psnr is None else f"; geometry training PSNR {psnr:.1f} dB (run.json)"
 
