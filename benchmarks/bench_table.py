@@ -31,6 +31,7 @@ import numpy as np
 REPO = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(REPO))  # tests.scenes builds the capture and its exact scene
 
+
 def score(capture_dir: Path, out: Path) -> dict:
     """``tests.scenes.table_scores`` (what the table test counts), its foreground Dice, and the
     geometry stage's training PSNR and start shape from run.json."""

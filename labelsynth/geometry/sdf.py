@@ -70,11 +70,12 @@ PLANE_MAX_VIEW_ANGLE_DEG = 60.0
 PLANE_VIEW_QUANTILE = 0.9  # ...for this share of the cameras (a few stray frames may be oblique)
 
 
-def _unit_directions(view_dirs) -> tuple["np.ndarray", "np.ndarray"]:
-    """The viewing directions as unit vectors (N, 3) and their mean (not renormalised)."""
+def _unit_directions(directions) -> tuple["np.ndarray", "np.ndarray"]:
+    """Directions (the cameras' viewing directions or x axes) as unit vectors (N, 3), and their
+    mean (not renormalised)."""
     import numpy as np
 
-    dirs = np.asarray(view_dirs, dtype=np.float64).reshape(-1, 3)
+    dirs = np.asarray(directions, dtype=np.float64).reshape(-1, 3)
     dirs = dirs / np.linalg.norm(dirs, axis=1, keepdims=True)
     return dirs, dirs.mean(0)
 
@@ -123,8 +124,7 @@ def plane_normal(view_dirs: Sequence, right_dirs: Sequence | None = None) -> "np
     mean = -mean / np.linalg.norm(mean)
     if right_dirs is None:
         return mean
-    axes = np.asarray(right_dirs, dtype=np.float64).reshape(-1, 3)
-    axes = axes / np.linalg.norm(axes, axis=1, keepdims=True)
+    axes, _ = _unit_directions(right_dirs)
     values, vectors = np.linalg.eigh(axes.T @ axes / len(axes))
     if values[1] < PLANE_AXES_MIN_SPREAD or values[0] > PLANE_AXES_MAX_FLATNESS * values[1]:
         return mean
