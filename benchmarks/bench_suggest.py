@@ -13,7 +13,8 @@ Cases (every frame carries its exact truth as an annotation, so any choice can t
 Per case, `suggest --annotate max(K)` fits the geometry once (greedy: its first K frames are its
 choice for every smaller K). Then for each K and each choice (suggested, the frame objective's choice
 on the same geometry (`suggest --objective frames`, ``SurfaceViews.frame_choice``), the surface
-objective with each sample weighted by the rarity of its colour (appearance, ``appearance_weights``), spread:K,
+objective with each sample weighted by the rarity of its colour (appearance, ``appearance_weights``), the frame
+objective on the same weighted samples (frames-appearance), spread:K,
 --random subsets drawn with a fixed seed) `expand --geometry SUGGEST_OUT --annotated-frames CHOICE --labels
 annotations --no-report` (``pipeline.expand``, what the CLI calls), scored against the truth on the
 frames not chosen: wound bed Dice and the mean Dice of the tissue classes present (the lego:
@@ -55,9 +56,10 @@ DEFAULT_LEGO = next((p for p in (REPO.parent / "shared" / "data" / "lego", REPO.
                      if p.is_dir()), REPO.parent / "shared" / "data" / "lego")  # /work/main or a worktree
 SYNTH_CASES = {"wound-a": ("one-sided", 11), "wound-b": ("one-sided", 12), "around": ("all-around", 13),
                "uneven": ("all-around-uneven", 13)}
-CHOICES = ("suggested", "frames", "appearance", "spread")
+CHOICES = ("suggested", "frames", "appearance", "frames-appearance", "spread")
 """Each K's choices besides the random ones: suggest's (surface objective), the frame objective's,
-the surface objective on samples weighted by the rarity of their colour (``appearance_weights``), spread:K."""
+the surface objective on samples weighted by the rarity of their colour (``appearance_weights``), the
+frame objective on the same weighted samples, spread:K (``--choices`` runs a subset)."""
 
 
 def log(msg: str) -> None:
@@ -164,9 +166,12 @@ def run_case(name: str, case: Path, args) -> dict:
     for k in args.ks:
         rng = np.random.default_rng([args.seed, k])
         views = _views(suggest_out)
-        choices = {"suggested": sorted(ranked[:k]), "frames": sorted(names[i] for i in views.frame_choice(k)),
-                   "appearance": sorted(p.name for p in _appearance_views(suggest_out).greedy(k)),
-                   "spread": select_frames(f"spread:{k}", names)}
+        make = {"suggested": lambda: sorted(ranked[:k]),
+                "frames": lambda: sorted(names[i] for i in views.frame_choice(k)),
+                "appearance": lambda: sorted(p.name for p in _appearance_views(suggest_out).greedy(k)),
+                "frames-appearance": lambda: sorted(names[i] for i in _appearance_views(suggest_out).frame_choice(k)),
+                "spread": lambda: select_frames(f"spread:{k}", names)}
+        choices = {c: make[c]() for c in dict.fromkeys([*args.choices, *(c for c in args.only if c in make)])}
         for r in range(args.random):
             choices[f"random{r}"] = sorted(names[i] for i in rng.choice(len(names), k, replace=False))
         if args.only:  # one process per choice: expand and score those only (a later run without --only tabulates)
@@ -177,13 +182,13 @@ def run_case(name: str, case: Path, args) -> dict:
         randoms = [res[c] for c in res if c.startswith("random")]
         worst = min(randoms, key=lambda r: r["wound_bed"]) if randoms else None
         cov = {c: _coverage(suggest_out, chosen) for c, chosen in choices.items()}
-        rows[k] = {**{c: res[c] for c in CHOICES}, "worst_random": worst,
+        rows[k] = {**{c: res[c] for c in args.choices}, "worst_random": worst,
                    "random_mean_wound_bed": float(np.mean([r["wound_bed"] for r in randoms])) if randoms else None,
-                   "coverage": {**{c: cov[c] for c in CHOICES},
+                   "coverage": {**{c: cov[c] for c in args.choices},
                                 "worst_random": cov[next(c for c in res if res[c] is worst)] if worst else None}}
-        log(f"{name} K={k}: wound bed " + " ".join(f"{c} {res[c]['wound_bed']:.3f}" for c in CHOICES)
+        log(f"{name} K={k}: wound bed " + " ".join(f"{c} {res[c]['wound_bed']:.3f}" for c in args.choices)
             + (f" worst random {worst['wound_bed']:.3f}" if worst else "")
-            + "; tissue mean " + " ".join(f"{c} {_f(res[c]['tissue_mean'])}" for c in CHOICES))
+            + "; tissue mean " + " ".join(f"{c} {_f(res[c]['tissue_mean'])}" for c in args.choices))
     return {"case": name, "frames": len(names), "ranked": ranked, "coverage": sug["coverage_by_k"],
             "geometry_seconds": sug["seconds"].get("geometry"), "suggest_seconds": sug["seconds"], "by_k": rows}
 
@@ -301,19 +306,21 @@ def _stages(seconds: dict) -> str:
 
 
 # --- report -----------------------------------------------------------------------------------
-def table(results: list[dict]) -> str:
-    choices = [c for c in CHOICES if c != "spread"]
-    short = {"suggested": "sugg", "frames": "frames", "appearance": "appear", "spread": "spread"}
-    head = " / ".join(short[c] for c in CHOICES)
+def table(results: list[dict], run: tuple[str, ...] = CHOICES) -> str:
+    """One row per case and K of the choices in ``run`` (spread among them)."""
+    choices = [c for c in run if c != "spread"]
+    short = {"suggested": "sugg", "frames": "frames", "appearance": "appear", "frames-appearance": "fr-app",
+             "spread": "spread"}
+    head = " / ".join(short[c] for c in run)
     lines = [f"| case | K | coverage {head} / worst rnd | wound bed {head} / worst rnd | tissue mean {head} / worst rnd | "
              + " | ".join(f"{short[c]} - spread (wb / tissue)" for c in choices) + " |",
              "|---" * (5 + len(choices)) + "|"]
     for res in results:
         for k, row in res["by_k"].items():
             w, cov = row["worst_random"] or {}, row["coverage"]
-            cells = [" / ".join([*(f"{cov[c]:.3f}" for c in CHOICES), _f(cov["worst_random"])]),
-                     " / ".join([*(f"{row[c]['wound_bed']:.3f}" for c in CHOICES), _f(w.get("wound_bed"))]),
-                     " / ".join([*(_f(row[c]["tissue_mean"]) for c in CHOICES), _f(w.get("tissue_mean"))]),
+            cells = [" / ".join([*(f"{cov[c]:.3f}" for c in run), _f(cov["worst_random"])]),
+                     " / ".join([*(f"{row[c]['wound_bed']:.3f}" for c in run), _f(w.get("wound_bed"))]),
+                     " / ".join([*(_f(row[c]["tissue_mean"]) for c in run), _f(w.get("tissue_mean"))]),
                      *(_diff(row[c], row["spread"]) for c in choices)]
             lines.append(f"| {res['case']} | {k} | " + " | ".join(cells) + " |")
     return "\n".join(lines)
@@ -369,6 +376,8 @@ def main() -> None:
                     help="seed of suggest's geometry and of every expand (one --work per seed keeps each seed's cache: how "
                          "much of a difference between choices is the fit's own variation); a cached fit of another "
                          "seed is redone")
+    ap.add_argument("--choices", default=",".join(CHOICES),
+                    help=f"comma list of the choices to expand and tabulate, spread always among them ({', '.join(CHOICES)})")
     ap.add_argument("--only", default="", help="comma list of choices (suggested, spread, random0, ...) to expand and "
                     "score, without the table: runs in parallel fill the cache, a run without --only tabulates")
     ap.add_argument("--timing", action="store_true", help="also the --geometry timing on the 50-frame wound")
@@ -386,6 +395,10 @@ def main() -> None:
     if args.work is None:
         ap.error("--work is required (unless --combine)")
     args.only = [c for c in args.only.split(",") if c]
+    wanted = {c for c in args.choices.split(",") if c} | {"spread"}
+    if wanted - set(CHOICES):
+        ap.error(f"--choices: unknown {', '.join(sorted(wanted - set(CHOICES)))} (known: {', '.join(CHOICES)})")
+    args.choices = tuple(c for c in CHOICES if c in wanted)
     args.work.mkdir(parents=True, exist_ok=True)
     summary: dict = {"settings": {k: (str(v) if isinstance(v, Path) else v) for k, v in vars(args).items()}}
     report = args.work / (args.json or ("bench_suggest_timing.json" if args.timing_only else "bench_suggest.json"))
@@ -406,7 +419,7 @@ def main() -> None:
         if args.only:
             print(f"expanded and scored {', '.join(args.only)} (no table: run again without --only)")
             return
-        print(table(results))
+        print(table(results, args.choices))
     if args.timing or args.timing_only:
         summary["timing"] = timing(args)
     report.write_text(json.dumps(summary, indent=1, default=str))

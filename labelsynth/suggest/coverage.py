@@ -128,11 +128,13 @@ class SurfaceViews:
         return picks
 
     def teacher_shares(self) -> np.ndarray:
-        """(F, F): [i, j] = the share of frame j's view of the surface that frame i sees as well."""
+        """(F, F): [i, j] = the share of frame j's view of the surface that frame i sees as well (each
+        sample counted by its ``weights``, when set)."""
         if self._shares is None:
             q = self.quality.astype(np.float64)
-            own = np.maximum(q.sum(axis=1), 1e-12)
-            self._shares = np.stack([np.minimum(q[i][None], q).sum(axis=1) / own for i in range(len(q))])
+            w = np.ones(q.shape[1]) if self.weights is None else self.weights.astype(np.float64)
+            own = np.maximum(q @ w, 1e-12)
+            self._shares = np.stack([np.minimum(q[i][None], q) @ w / own for i in range(len(q))])
         return self._shares
 
     def frame_score(self, indices: list[int]) -> float:

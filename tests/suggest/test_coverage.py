@@ -132,6 +132,9 @@ def test_frame_objective_shares_and_local_optimum():
     assert np.allclose(np.diag(shares), 1.0) and (shares >= 0).all() and (shares <= 1 + 1e-9).all()
     i, j = 2, 5  # by hand: the share of frame j's view that frame i sees as well
     assert np.isclose(shares[i, j], np.minimum(quality[i], quality[j]).sum() / quality[j].sum(), rtol=1e-5)
+    w = rng.random(200).astype(np.float32)  # weighted samples count by their weight in both sums
+    assert np.isclose(views.weighted(w).teacher_shares()[i, j],
+                      (w * np.minimum(quality[i], quality[j])).sum() / (w * quality[j]).sum(), rtol=1e-5)
     for k in (2, 3):
         picks = views.frame_choice(k)
         assert len(set(picks)) == k and picks == sorted(picks)
