@@ -29,11 +29,13 @@ whose truth holds the class). Arms (``--arms``; K = expert frames per capture):
                  the other self-training arms train unweighted)
     st-pred-cross st-pred with ``--cross-fit``: from round 2, each capture segmented by a teacher trained on
                  the other captures' labels of the round before, not by M1, which learnt its own
+    st-pred-agree st-pred with ``--agree``: from round 2, only the pixels whose fused class the round
+                 before's labels give too (the others ignored)
     st-truth     the exact truth of every frame of the self-training captures: the loop's own ceiling
                  (what its rounds would reach were their fused labels perfect)
   varied frames (``synth --phone`` captures: exposure, white balance, blur, noise, JPEG, distance, zoom)
     pa1, pb1, pc1, pd   as a1, b1, c1, d on phone-like captures, tested on phone-like captures
-    pst-raw, pst-pred, pst-both, pst-pred-warm, pst-pred-acc, pst-pred-conf, pst-pred-cross, pst-truth   self-training on phone-like captures (``--phone-self-seeds``) from
+    pst-raw, pst-pred, pst-both, pst-pred-warm, pst-pred-acc, pst-pred-conf, pst-pred-cross, pst-pred-agree, pst-truth   self-training on phone-like captures (``--phone-self-seeds``) from
                  M0 = pa1's model: the weak model whose masks disagree from view to view (it fails
                  where a video's exposure or distance drifts), the paper's main mode
 
@@ -66,7 +68,8 @@ PLAIN, PHONE = "plain", "phone"
 VARIANTS = {"warm": ("--warm-start", "the model started from {source}'s weights"),
             "acc": ("--accumulate", "plus every earlier round's fused labels"),
             "conf": ("--confidence-weight", "each pixel weighted by its labels.h5 confidence (train's default)"),
-            "cross": ("--cross-fit", "each capture's masks from a teacher trained on the other captures' labels")}
+            "cross": ("--cross-fit", "each capture's masks from a teacher trained on the other captures' labels"),
+            "agree": ("--agree", "only the pixels whose class the round before's labels agree with")}
 """Self-training arm suffixes (st-pred-warm, ...): the selftrain option, and what the table says of it
 (every other self-training arm trains unweighted, ``--no-confidence-weight``, like bK)."""
 
@@ -314,6 +317,8 @@ class Bench:
         names = [Path(c).name for c in state["settings"]["captures"]]
         sources = [out / "labels" / f"{n}.h5" for n in names] if mode == "raw" else \
             [out / "expanded" / n / "labels.h5" for n in names]
+        if variant == "agree" and r > 1:  # what the loop's own round trained on
+            sources = [out / "agreed" / f"{n}.h5" for n in names]
         results = {}
         for s in seeds:
             if s == self.args.seed:
@@ -553,12 +558,13 @@ def targets(by: dict[str, dict]) -> list[str]:
                 out.append(f"self-training ({where}): the ceiling ({ceiling}, exact truth of every frame) is only "
                            f"{room:+.3f} wound bed above (i): a +0.03 gain would put (ii) "
                            f"above it, so that part of the target cannot be met with this M0")
-        for mode in ("pred", "both", "pred-warm", "pred-acc", "pred-conf", "pred-cross"):
+        for mode in ("pred", "both", "pred-warm", "pred-acc", "pred-conf", "pred-cross", "pred-agree"):
             if f"{p}st-{mode} r1" in by and f"{p}st-{mode} r2" in by:
                 dw = wb(f"{p}st-{mode} r2") - wb(f"{p}st-{mode} r1")
                 dt = tm(f"{p}st-{mode} r2") - tm(f"{p}st-{mode} r1")
                 label = {"pred": "ii", "both": "iii", "pred-warm": "ii, warm start", "pred-acc": "ii, accumulated labels",
-                         "pred-conf": "ii, confidence-weighted", "pred-cross": "ii, cross-fitted teachers"}[mode]
+                         "pred-conf": "ii, confidence-weighted", "pred-cross": "ii, cross-fitted teachers",
+                         "pred-agree": "ii, labels both rounds agree on"}[mode]
                 out.append(f"self-training ({where}, {label}): round 2 - round 1 wound bed "
                            f"{dw:+.3f}, tissue mean {dt:+.3f} (target: not below: "
                            f"{'met' if min(dw, dt) >= 0 else 'NOT met'})")

@@ -487,6 +487,8 @@ def selftrain(
     cross_fit: bool = typer.Option(False, "--cross-fit", help="From round 2, segment each capture with a model trained on the "
                                    "other captures' labels of the round before (two folds; 2+ captures), not with one "
                                    "that learnt its own labels."),
+    agree: bool = typer.Option(False, "--agree", help="From round 2, train only on the pixels whose fused class the round "
+                               "before gave too (the others are ignored)."),
     force: bool = typer.Option(False, help="Start over in OUT (else a rerun with the same settings continues)."),
 ) -> None:
     """The self-training loop: a model's masks of new captures -> expand -> a new model, round after round."""
@@ -499,7 +501,8 @@ def selftrain(
                        min_confidence=min_confidence, confidence_weight=confidence_weight, expert_weight=expert_weight,
                        eval_every=eval_every, seed=seed)
     cfg = SelfTrainConfig(rounds=rounds, labels=labels, recipe=recipe, overrides=set_, seed=seed, device=device,
-                          train=tcfg, warm_start=warm_start, accumulate=accumulate, cross_fit=cross_fit)
+                          train=tcfg, warm_start=warm_start, accumulate=accumulate, cross_fit=cross_fit,
+                          agree=agree)
     result = run_selftrain(captures, model, out, cfg, holdout=holdout, also=also, force=force)
     Console(width=None if sys.stdout.isatty() else 200).print(result.table(), markup=False, highlight=False)
     typer.echo(result.summary())

@@ -11,8 +11,9 @@ OUT/
   round<R>/predictions/<C>/ the previous model's masks of capture C (``segment``)
   round<R>/captures/<C>/    C with those masks as predictions/ (``capture.view``: C itself is never written)
   round<R>/expanded/<C>/    ``expand`` of that view (labels.h5); ``raw``: round<R>/labels/<C>.h5 instead
+  round<R>/agreed/<C>.h5    ``agree``, R >= 2: round R's labels of C where round R-1's gave the same class (else ignore)
   round<R>/model/           ``train``: model.onnx, train.json, curves.png (``warm_start``: from round R-1's weights;
-                            ``accumulate``: on rounds 1..R's labels)
+                            ``accumulate``: on rounds 1..R's labels; ``agree``: on round<R>/agreed/)
   round<R>/teachers/fold<F>/ ``cross_fit``, R >= 2: the model that segments fold F's captures (train's files)
   round<R>/holdout/<H>/     the round's model's masks of held-out capture H, scored against its annotations/
 
@@ -27,13 +28,14 @@ import json
 import shutil
 import time
 from dataclasses import asdict, dataclass, field
+from functools import lru_cache
 from pathlib import Path
 from typing import Any, Callable
 
 import numpy as np
 
 from ..capture.view import capture_view
-from ..classes import BACKGROUND_ID, WOUND_BED, ClassMap
+from ..classes import BACKGROUND_ID, IGNORE_ID, WOUND_BED, ClassMap
 from ..config import with_defaults
 from ..errors import LabelsynthError
 from ..outdir import check_apart, check_writable, write_text_atomic
@@ -82,6 +84,11 @@ class SelfTrainConfig:
     """From round 2 on, each capture is segmented by a teacher trained (from scratch, same settings) on
     round R-1's labels of the *other* captures (two folds: captures 1, 3, ... and 2, 4, ...), not
     by round R-1's model, which learnt that capture's own labels and mostly repeats them."""
+    agree: bool = False
+    """From round 2 on, round R trains only on the pixels whose fused class round R-1's labels gave
+    too; the others are ignored (255). Why: a label that changes from round to round is one the
+    loop is unsure of (on the phone-like benchmark round 2 moved a band of skin to epithelial and
+    lost most of ``unknown``, while the pixels both rounds agree on are the right ones more often)."""
 
     def check(self) -> None:
         """Every value, and the recipe expand will use (file, keys, types, ranges) and the device,
@@ -188,6 +195,30 @@ def raw_labels_h5(capture: Path, path: Path) -> Path:
     path.parent.mkdir(parents=True, exist_ok=True)
     write_labels_h5(path, images=cap.load_image, masks=cap.load_prediction, frame_names=cap.names,
                     classes=cap.classes, annotated=np.zeros(len(cap), dtype=bool), source=capture)
+    return path
+
+
+def agreed_labels_h5(now: Path, before: Path, path: Path) -> Path:
+    """``now`` (a labels.h5) with every pixel whose class differs in ``before`` (the same capture's
+    labels.h5 of the round before) set to ignore (255, confidence 0): what ``agree`` trains on.
+    Written as ``path``.partial and renamed when complete."""
+    from ..export import LabelsReader, write_labels_h5
+
+    a, b = LabelsReader(now), LabelsReader(before)
+    if a.frame_names != b.frame_names or (a.height, a.width) != (b.height, b.width):
+        raise SelfTrainError(f"{before}: not the same frames as {now} (cannot compare the rounds' labels)")
+
+    @lru_cache(maxsize=1)  # the writer asks for a frame's image, mask and confidence in turn
+    def frame(i: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        image, mask, conf = (np.asarray(x) for x in a.read(i))
+        differ = np.asarray(b.read(i)[1]) != mask
+        return image, np.where(differ, IGNORE_ID, mask).astype(np.uint8), np.where(differ, 0.0, conf)
+
+    path.parent.mkdir(parents=True, exist_ok=True)
+    write_labels_h5(path, images=lambda i: frame(i)[0], masks=lambda i: frame(i)[1],
+                    confidence=lambda i: frame(i)[2], frame_names=a.frame_names, classes=a.classes,
+                    annotated=a.annotated, source=a.attrs.get("source"),
+                    attrs={"agreed_with": str(before)})
     return path
 
 
@@ -442,7 +473,16 @@ def selftrain(captures: list[str | Path], model: str | Path, out: str | Path, cf
                     t = time.perf_counter()
                     _expand(view, expanded, cfg.labels, cfg)
                     say(f"{step}: expanded in {time.perf_counter() - t:.0f} s")
-            sources.append(h5)
+            if cfg.agree and labels_before:
+                agreed = here / "agreed" / f"{name}.h5"
+                if not agreed.is_file():
+                    say(f"{step}: keep the labels round {r - 1} agrees with")
+                    agreed_labels_h5(h5, labels_before[i], agreed)
+                sources.append(agreed)
+            else:
+                sources.append(h5)
+        fused = [here / "labels" / f"{n}.h5" if cfg.labels == "raw" else here / "expanded" / n / LABELS_FILE
+                 for n in names]
         model_dir = here / "model"
         if not _model_done(model_dir, tcfg.steps):
             taught = [*also, *(earlier if cfg.accumulate else []), *sources]
@@ -453,7 +493,7 @@ def selftrain(captures: list[str | Path], model: str | Path, out: str | Path, cf
             frames = json.loads((model_dir / "train.json").read_text())["split"]["train_frames"]
         current = model_dir / "model.onnx"
         earlier += sources
-        labels_before = sources
+        labels_before = fused  # each round is compared with the whole labels of the round before
         score(r, current, str(current), frames, started)
     result = SelfTrainResult(out, rows, time.perf_counter() - t0)
     state["table"] = result.table()

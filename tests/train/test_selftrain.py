@@ -195,6 +195,53 @@ def test_accumulate_trains_each_round_on_every_rounds_labels(data, tmp_path):
         assert report["split"]["train_frames"] == 3 * len(rounds)
 
 
+def test_agreed_labels_keep_only_the_pixels_both_rounds_gave_the_same_class(tmp_path):
+    """agreed_labels_h5: round R's class where round R-1's is the same, else ignore with confidence 0;
+    images, confidences and expert flags otherwise as round R's."""
+    from labelsynth.export import write_labels_h5
+
+    rng = np.random.default_rng(0)
+    classes = ClassMap.default()
+    images = rng.integers(0, 256, (2, 5, 6, 3), dtype=np.uint8)
+    before = rng.choice([0, 1, 3], (2, 5, 6)).astype(np.uint8)
+    now = np.where(rng.random((2, 5, 6)) < 0.5, before, rng.choice([0, 2], (2, 5, 6))).astype(np.uint8)
+    conf = rng.uniform(0.3, 1.0, (2, 5, 6)).astype(np.float32)
+    kw = dict(images=images, frame_names=["a", "b"], classes=classes)
+    write_labels_h5(tmp_path / "r1.h5", masks=before, **kw)
+    write_labels_h5(tmp_path / "r2.h5", masks=now, confidence=conf, annotated=[True, False], **kw)
+    st.agreed_labels_h5(tmp_path / "r2.h5", tmp_path / "r1.h5", tmp_path / "agreed.h5")
+    reader = LabelsReader(tmp_path / "agreed.h5")
+    assert reader.frame_names == ["a", "b"] and reader.annotated.tolist() == [True, False]
+    same = now == before
+    assert same.any() and (~same).any()
+    for i in range(2):
+        image, mask, c = (np.asarray(x) for x in reader.read(i))
+        np.testing.assert_array_equal(image, images[i])
+        np.testing.assert_array_equal(mask, np.where(same[i], now[i], 255))
+        np.testing.assert_allclose(c, np.where(same[i], conf[i], 0.0), atol=1e-3)  # float16 storage
+    write_labels_h5(tmp_path / "other.h5", masks=before, images=images, frame_names=["a", "c"], classes=classes)
+    with pytest.raises(SelfTrainError, match="not the same frames"):
+        st.agreed_labels_h5(tmp_path / "r2.h5", tmp_path / "other.h5", tmp_path / "x.h5")
+
+
+def test_agree_trains_round_two_on_the_labels_round_one_agrees_with(data, tmp_path):
+    """--agree: round 1 trains on its labels as they are; round 2 on its own labels where round 1's
+    give the same class (round2/agreed/), and says so in selftrain.json."""
+    out = tmp_path / "agree"
+    cfg = SelfTrainConfig(rounds=2, labels="raw", device="cpu", agree=True,
+                          train=TrainConfig(**TINY_TRAIN, val_split="none"))
+    selftrain([data["cap2"]], data["m0"], out, cfg, progress=False, log=lambda m: None)
+    labels = {r: out / f"round{r}" / "labels" / "capture.h5" for r in (1, 2)}
+    agreed = out / "round2" / "agreed" / "capture.h5"
+    sources = {r: json.loads((out / f"round{r}" / "model" / "train.json").read_text())["sources"] for r in (1, 2)}
+    assert sources == {1: [str(labels[1])], 2: [str(agreed)]} and not (out / "round1" / "agreed").exists()
+    r1, r2, kept = LabelsReader(labels[1]), LabelsReader(labels[2]), LabelsReader(agreed)
+    for i in range(len(kept)):
+        m1, m2, mk = (np.asarray(reader.read(i)[1]) for reader in (r1, r2, kept))
+        np.testing.assert_array_equal(mk, np.where(m1 == m2, m2, 255))
+    assert json.loads((out / "selftrain.json").read_text())["settings"]["config"]["agree"] is True
+
+
 def test_cross_fit_segments_each_capture_with_a_teacher_that_never_learnt_its_labels(data, tmp_path, monkeypatch):
     """--cross-fit: round 1 segments with M0 as always; round 2 segments capture 1 with a teacher
     trained on capture 2's round-1 labels only and capture 2 with one trained on capture 1's, and
