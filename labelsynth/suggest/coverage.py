@@ -132,9 +132,9 @@ class SurfaceViews:
         sample counted by its ``weights``, when set)."""
         if self._shares is None:
             q = self.quality.astype(np.float64)
-            w = np.ones(q.shape[1]) if self.weights is None else self.weights.astype(np.float64)
-            own = np.maximum(q @ w, 1e-12)
-            self._shares = np.stack([np.minimum(q[i][None], q) @ w / own for i in range(len(q))])
+            own = np.maximum(self._weighted(q).sum(axis=1), 1e-12)
+            self._shares = np.stack([self._weighted(np.minimum(q[i][None], q)).sum(axis=1) / own
+                                     for i in range(len(q))])
         return self._shares
 
     def frame_score(self, indices: list[int]) -> float:
