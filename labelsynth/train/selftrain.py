@@ -28,7 +28,6 @@ import json
 import shutil
 import time
 from dataclasses import asdict, dataclass, field
-from functools import lru_cache
 from pathlib import Path
 from typing import Any, Callable
 
@@ -204,23 +203,17 @@ def agreed_labels_h5(now: Path, before: Path, path: Path) -> Path:
     """``now`` (a labels.h5) with every pixel whose class differs in ``before`` (the same capture's
     labels.h5 of the round before) set to ignore (255, confidence 0): what ``agree`` trains on.
     Written as ``path``.partial and renamed when complete."""
-    from ..export import LabelsReader, write_labels_h5
+    from ..export import LabelsReader, LabelsWriter
 
     a, b = LabelsReader(now), LabelsReader(before)
     if a.frame_names != b.frame_names or (a.height, a.width) != (b.height, b.width):
         raise SelfTrainError(f"{before}: not the same frames as {now} (cannot compare the rounds' labels)")
-
-    @lru_cache(maxsize=1)  # the writer asks for a frame's image, mask and confidence in turn
-    def frame(i: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        image, mask, conf = (np.asarray(x) for x in a.read(i))
-        differ = np.asarray(b.read(i)[1]) != mask
-        return image, np.where(differ, IGNORE_ID, mask).astype(np.uint8), np.where(differ, 0.0, conf)
-
-    path.parent.mkdir(parents=True, exist_ok=True)
-    write_labels_h5(path, images=lambda i: frame(i)[0], masks=lambda i: frame(i)[1],
-                    confidence=lambda i: frame(i)[2], frame_names=a.frame_names, classes=a.classes,
-                    annotated=a.annotated, source=a.attrs.get("source"),
-                    attrs={"agreed_with": str(before)})
+    with LabelsWriter(path, len(a), a.classes, source=a.attrs.get("source"), attrs={"agreed_with": str(before)}) as w:
+        for i, name in enumerate(a.frame_names):
+            image, mask, conf = (np.asarray(x) for x in a.read(i))
+            differ = np.asarray(b.read(i)[1]) != mask
+            w.add(name, image, np.where(differ, IGNORE_ID, mask).astype(np.uint8), np.where(differ, 0.0, conf),
+                  bool(a.annotated[i]))
     return path
 
 
@@ -436,7 +429,7 @@ def selftrain(captures: list[str | Path], model: str | Path, out: str | Path, cf
     score(0, model, str(model), None, t0)
     current = model
     earlier: list[Path] = []  # the labels of the rounds before (``accumulate``)
-    labels_before: list[Path] = []  # the round before's labels, one per capture (``cross_fit``)
+    labels_before: list[Path] = []  # the round before's labels, one per capture (``cross_fit``, ``agree``)
     for r in range(1, cfg.rounds + 1):
         started = time.perf_counter()
         here = out / f"round{r}"
@@ -446,7 +439,8 @@ def selftrain(captures: list[str | Path], model: str | Path, out: str | Path, cf
         if holdout:
             tcfg.val_captures = [str(h) for h in holdout]
 
-        sources: list[Path] = []
+        sources: list[Path] = []  # what this round trains on
+        fused: list[Path] = []  # this round's labels of each capture (``agree`` compares the next round's with them)
         for i, (cap_dir, name) in enumerate(zip(captures, names)):
             step = f"round {r}/{cfg.rounds}, capture {i + 1}/{len(captures)} ({name})"
             masks = here / "predictions" / name
@@ -475,6 +469,7 @@ def selftrain(captures: list[str | Path], model: str | Path, out: str | Path, cf
                     t = time.perf_counter()
                     _expand(view, expanded, cfg.labels, cfg)
                     say(f"{step}: expanded in {time.perf_counter() - t:.0f} s")
+            fused.append(h5)
             if cfg.agree and labels_before:
                 agreed = here / "agreed" / f"{name}.h5"
                 if not agreed.is_file():
@@ -483,8 +478,6 @@ def selftrain(captures: list[str | Path], model: str | Path, out: str | Path, cf
                 sources.append(agreed)
             else:
                 sources.append(h5)
-        fused = [here / "labels" / f"{n}.h5" if cfg.labels == "raw" else here / "expanded" / n / LABELS_FILE
-                 for n in names]
         model_dir = here / "model"
         if not _model_done(model_dir, tcfg.steps):
             taught = [*also, *(earlier if cfg.accumulate else []), *sources]
@@ -495,7 +488,7 @@ def selftrain(captures: list[str | Path], model: str | Path, out: str | Path, cf
             frames = json.loads((model_dir / "train.json").read_text())["split"]["train_frames"]
         current = model_dir / "model.onnx"
         earlier += sources
-        labels_before = fused  # each round is compared with the whole labels of the round before
+        labels_before = fused
         score(r, current, str(current), frames, started)
     result = SelfTrainResult(out, rows, time.perf_counter() - t0)
     state["table"] = result.table()
