@@ -14,8 +14,8 @@ Per case, `suggest --annotate max(K)` fits the geometry once (greedy: its first 
 choice for every smaller K). Then for each K and each choice (suggested, the frame objective's choice
 on the same geometry (`suggest --objective frames`, ``SurfaceViews.frame_choice``), the surface
 objective with each sample weighted by the rarity of its colour (appearance, ``appearance_weights``), the frame
-objective on the same weighted samples (frames-appearance), spread:K,
---random subsets drawn with a fixed seed) `expand --geometry SUGGEST_OUT --annotated-frames CHOICE --labels
+objective on the same weighted samples (frames-appearance), spread:K moved one frame earlier or later
+(spread-earlier, spread-later: the benchmark's resolution), spread:K, --random subsets drawn with a fixed seed) `expand --geometry SUGGEST_OUT --annotated-frames CHOICE --labels
 annotations --no-report` (``pipeline.expand``, what the CLI calls), scored against the truth on the
 frames not chosen: wound bed Dice and the mean Dice of the tissue classes present (the lego:
 foreground Dice, its one class). "worst random" is the random subset of lowest wound-bed Dice.
@@ -56,10 +56,12 @@ DEFAULT_LEGO = next((p for p in (REPO.parent / "shared" / "data" / "lego", REPO.
                      if p.is_dir()), REPO.parent / "shared" / "data" / "lego")  # /work/main or a worktree
 SYNTH_CASES = {"wound-a": ("one-sided", 11), "wound-b": ("one-sided", 12), "around": ("all-around", 13),
                "uneven": ("all-around-uneven", 13)}
-CHOICES = ("suggested", "frames", "appearance", "frames-appearance", "spread")
+CHOICES = ("suggested", "frames", "appearance", "frames-appearance", "spread-earlier", "spread-later", "spread")
 """Each K's choices besides the random ones: suggest's (surface objective), the frame objective's,
 the surface objective on samples weighted by the rarity of their colour (``appearance_weights``), the
-frame objective on the same weighted samples, spread:K (``--choices`` runs a subset)."""
+frame objective on the same weighted samples, spread:K with each of its frames one frame earlier or
+later (how far a choice one frame from spread's moves the scores: the benchmark's resolution),
+spread:K (``--choices`` runs a subset)."""
 
 
 def log(msg: str) -> None:
@@ -170,6 +172,8 @@ def run_case(name: str, case: Path, args) -> dict:
                 "frames": lambda: sorted(names[i] for i in views.frame_choice(k)),
                 "appearance": lambda: sorted(p.name for p in _appearance_views(suggest_out).greedy(k)),
                 "frames-appearance": lambda: sorted(names[i] for i in _appearance_views(suggest_out).frame_choice(k)),
+                "spread-earlier": lambda: shifted_spread(names, k, -1),
+                "spread-later": lambda: shifted_spread(names, k, +1),
                 "spread": lambda: select_frames(f"spread:{k}", names)}
         choices = {c: make[c]() for c in dict.fromkeys([*args.choices, *(c for c in args.only if c in make)])}
         for r in range(args.random):
@@ -191,6 +195,19 @@ def run_case(name: str, case: Path, args) -> dict:
             + "; tissue mean " + " ".join(f"{c} {_f(res[c]['tissue_mean'])}" for c in args.choices))
     return {"case": name, "frames": len(names), "ranked": ranked, "coverage": sug["coverage_by_k"],
             "geometry_seconds": sug["seconds"].get("geometry"), "suggest_seconds": sug["seconds"], "by_k": rows}
+
+
+def shifted_spread(names: list[str], k: int, step: int) -> list[str]:
+    """spread:K with each frame moved ``step`` frames along the video (kept inside it): a choice as
+    close to spread's as a choice can be, so its Dice minus spread's is the smallest difference a
+    different choice makes."""
+    from labelsynth.capture.select import select_frames
+
+    index = {n: i for i, n in enumerate(names)}
+    moved = [min(max(index[n] + step, 0), len(names) - 1) for n in select_frames(f"spread:{k}", names)]
+    if len(set(moved)) < k:
+        raise ValueError(f"spread:{k} of {len(names)} frames moved by {step}: two frames coincide")
+    return [names[i] for i in moved]
 
 
 def _coverage(suggest_out: Path, chosen: list[str]) -> float:
@@ -310,7 +327,7 @@ def table(results: list[dict], run: tuple[str, ...] = CHOICES) -> str:
     """One row per case and K of the choices in ``run`` (spread among them)."""
     choices = [c for c in run if c != "spread"]
     short = {"suggested": "sugg", "frames": "frames", "appearance": "appear", "frames-appearance": "fr-app",
-             "spread": "spread"}
+             "spread-earlier": "spr-1", "spread-later": "spr+1", "spread": "spread"}
     head = " / ".join(short[c] for c in run)
     lines = [f"| case | K | coverage {head} / worst rnd | wound bed {head} / worst rnd | tissue mean {head} / worst rnd | "
              + " | ".join(f"{short[c]} - spread (wb / tissue)" for c in choices) + " |",

@@ -24,13 +24,19 @@ def test_fit_seed_reaches_suggest_and_every_expand(tmp_path: Path) -> None:
     res = _bench(tmp_path, 3)
     assert any(line.startswith("| around | 2 |") for line in res.stdout.splitlines())
     assert json.loads((tmp_path / "around" / "suggest" / "suggest.json").read_text())["seed"] == 3
-    for choice in ("suggested", "frames", "appearance", "spread", "random0"):
+    for choice in ("suggested", "frames", "appearance", "spread-earlier", "spread-later", "spread", "random0"):
         run = json.loads((tmp_path / "around" / "K2" / choice / "run.json").read_text())
         assert run["seed"] == 3 and len(run["annotated_frames"]) == 2
     summary = json.loads((tmp_path / "bench_suggest.json").read_text())
     row = summary["cases"][0]["by_k"]["2"]
     assert row["suggested"]["scored"] == row["frames"]["scored"] == row["spread"]["scored"] == 4  # 6 less the 2 chosen
     assert row["appearance"]["scored"] == 4
+    # spread's frames moved one frame earlier and later: the benchmark's resolution
+    frames = {c: json.loads((tmp_path / "around" / "K2" / c / "run.json").read_text())["annotated_frames"]
+              for c in ("spread", "spread-earlier", "spread-later")}
+    number = {c: [int(n.rsplit("_", 1)[1]) for n in f] for c, f in frames.items()}
+    assert number["spread-earlier"] == [i - 1 for i in number["spread"]]
+    assert number["spread-later"] == [i + 1 for i in number["spread"]]
 
     first = tmp_path / "seed3.json"
     first.write_text((tmp_path / "bench_suggest.json").read_text())
