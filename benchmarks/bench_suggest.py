@@ -370,7 +370,43 @@ def combine(summaries: list[Path]) -> str:
                     cells.append("" if choice == "spread" or not diffs else
                                  f"{np.mean(diffs):+.3f} ± {np.std(diffs, ddof=1) if len(diffs) > 1 else 0.0:.3f}")
                 lines.append(f"| {name} | {k} | {choice} | " + " | ".join(cells) + " |")
-    return "\n".join(lines)
+    return "\n".join([*lines, "", *resolution(runs)])
+
+
+NEIGHBOURS = ("spread-earlier", "spread-later")
+
+
+def resolution(runs: list[dict], threshold: float = 0.005) -> list[str]:
+    """Per choice, over the runs' (case, K, class group) cells: how many miss the issue's threshold
+    (mean minus spread below -``threshold``) and, where the runs have spread's one-frame neighbours,
+    how many are at or above the worse of them (mean minus spread): what the benchmark can resolve.
+    A case whose tissue mean is its wound bed (the lego's one class) counts once."""
+    cells: dict[str, list[float]] = {}
+    lowest: list[float | None] = []
+    for name in [c["case"] for c in runs[0]["cases"]]:
+        rows = [next(c for c in r["cases"] if c["case"] == name)["by_k"] for r in runs]
+        for k in rows[0]:
+            for key in ("wound_bed", "tissue_mean"):
+                if key == "tissue_mean" and all(r[k]["spread"]["tissue_mean"] in (None, r[k]["spread"]["wound_bed"])
+                                                for r in rows):
+                    continue
+                mean = {}
+                for choice in [c for c in CHOICES if c != "spread" and all(c in r[k] for r in rows)]:
+                    diffs = [r[k][choice][key] - r[k]["spread"][key] for r in rows if r[k][choice][key] is not None]
+                    if diffs:
+                        mean[choice] = float(np.mean(diffs))
+                lowest.append(min([0.0, *(mean[c] for c in NEIGHBOURS)]) if all(c in mean for c in NEIGHBOURS) else None)
+                for choice, m in mean.items():
+                    cells.setdefault(choice, []).append((m, lowest[-1]))
+    if not cells:
+        return []
+    lines = [f"of {len(lowest)} (case, K, class group) cells, mean over {len(runs)} run(s) minus spread:"]
+    for choice, vals in cells.items():
+        line = f"  {choice}: {sum(m < -threshold for m, _ in vals)} below -{threshold}"
+        if all(lo is not None for _, lo in vals) and choice not in NEIGHBOURS:
+            line += f"; {sum(m >= lo for m, lo in vals)} at or above the worse of spread's one-frame neighbours"
+        lines.append(line)
+    return lines
 
 
 def main() -> None:

@@ -1,7 +1,8 @@
 """benchmarks/bench_suggest.py end to end on a tiny all-around capture (the numbers mean nothing):
 suggest fits the geometry with --fit-seed, every choice (the frame objective's too) expands from it
-with that seed, the table has the case's row, a rerun with another seed redoes the cached fit
-instead of reusing it, and --combine tabulates both runs."""
+with that seed, spread's one-frame neighbours are spread's frames moved by one, the table has the
+case's row, a rerun with another seed redoes the cached fit instead of reusing it, and --combine
+tabulates both runs and counts each choice's cells against the threshold and the neighbours."""
 
 from __future__ import annotations
 
@@ -55,3 +56,14 @@ def test_fit_seed_reaches_suggest_and_every_expand(tmp_path: Path) -> None:
     assert cells[3] == " ".join(f"{r['frames']['wound_bed']:.3f}" for r in runs)
     assert cells[4] == f"{np.mean(diffs):+.3f} ± {np.std(diffs, ddof=1):.3f}"
     assert any(line.startswith("| around | 2 | appearance |") for line in table.splitlines())
+    # the summary under the table: per choice, the cells below the threshold and those at or above
+    # the worse of spread's one-frame neighbours, from the same means
+    groups = ["wound_bed"] + (["tissue_mean"] if runs[0]["spread"]["tissue_mean"] not in (None, runs[0]["spread"]["wound_bed"]) else [])
+    def mean_diff(choice, key):
+        return np.mean([r[choice][key] - r["spread"][key] for r in runs])
+    below = sum(mean_diff("frames", g) < -0.005 for g in groups)
+    above = sum(mean_diff("frames", g) >= min(0.0, mean_diff("spread-earlier", g), mean_diff("spread-later", g))
+                for g in groups)
+    assert f"of {len(groups)} (case, K, class group) cells, mean over 2 run(s) minus spread:" in table
+    assert f"  frames: {below} below -0.005; {above} at or above the worse of spread's one-frame neighbours" in table
+    assert any(line.startswith("  spread-later: ") and "neighbours" not in line for line in table.splitlines())
