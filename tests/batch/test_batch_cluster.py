@@ -19,7 +19,7 @@ from ray.cluster_utils import Cluster  # noqa: E402
 from labelsynth.batch import ExpandOptions, run_batch  # noqa: E402
 from labelsynth.export import LabelsDataset, read_labels_h5  # noqa: E402
 
-from .workers import raylet_pid, task_pid  # noqa: E402
+from .workers import raylet_pid, signal_handlers_kept, task_pid  # noqa: E402
 
 pytestmark = pytest.mark.xdist_group("ray")  # one Ray at a time in the suite
 
@@ -32,16 +32,17 @@ NODE = {"num_cpus": 1, "object_store_memory": 80 * 1024**2}
 
 @pytest.fixture
 def cluster():
-    c = Cluster(initialize_head=True, head_node_args={"num_cpus": 0, "object_store_memory": 80 * 1024**2,
-                                                      "include_dashboard": False})
-    nodes = [c.add_node(**NODE), c.add_node(**NODE)]
-    c.wait_for_nodes()
-    ray.init(address=c.address, log_to_driver=False)
-    try:
-        yield c, nodes
-    finally:
-        ray.shutdown()
-        c.shutdown()
+    with signal_handlers_kept():  # the in-process head node and the driver each install a SIGTERM handler
+        c = Cluster(initialize_head=True, head_node_args={"num_cpus": 0, "object_store_memory": 80 * 1024**2,
+                                                          "include_dashboard": False})
+        nodes = [c.add_node(**NODE), c.add_node(**NODE)]
+        c.wait_for_nodes()
+        ray.init(address=c.address, log_to_driver=False)
+        try:
+            yield c, nodes
+        finally:
+            ray.shutdown()
+            c.shutdown()
 
 
 @pytest.fixture(scope="module")

@@ -27,7 +27,7 @@ from labelsynth.batch.discover import BatchError  # noqa: E402
 from labelsynth.cli import app  # noqa: E402
 from labelsynth.export import LabelsDataset, read_labels_h5  # noqa: E402
 
-from .workers import descendants, local_node, raylet_pid, task_pid  # noqa: E402
+from .workers import descendants, local_node, raylet_pid, signal_handlers_kept, task_pid  # noqa: E402
 
 pytestmark = pytest.mark.xdist_group("ray")
 
@@ -46,9 +46,10 @@ def _options() -> ExpandOptions:
 
 @pytest.fixture(scope="module")
 def ray_local():
-    ray.init(address="local", num_cpus=2, include_dashboard=False, log_to_driver=False)
-    yield ray
-    ray.shutdown()
+    with signal_handlers_kept():
+        ray.init(address="local", num_cpus=2, include_dashboard=False, log_to_driver=False)
+        yield ray
+        ray.shutdown()
 
 
 @pytest.fixture(scope="module")
@@ -217,3 +218,35 @@ def test_address_attaches_to_a_ray_start_head(captures, tmp_path):
             os.killpg(head.pid, signal.SIGKILL)
         except ProcessLookupError:
             pass
+
+
+_HANDLERS_AFTER_BATCH = """
+import signal, sys
+from pathlib import Path
+from labelsynth.batch import ExpandOptions, run_batch
+
+def handlers():
+    return signal.getsignal(signal.SIGINT), signal.getsignal(signal.SIGTERM)
+
+before = handlers()
+run_batch(Path(sys.argv[1]), Path(sys.argv[2]), ExpandOptions(labels="annotations", recipe="fast", report=False),
+          cpus_per_capture=1, retries=0, progress=False)
+assert handlers() == before, ("batch", before, handlers())
+import ray  # the same start and stop without run_batch: Ray leaves its own SIGTERM handler behind
+ray.init(address="local", num_cpus=1, include_dashboard=False, log_to_driver=False)
+ray.shutdown()
+assert handlers() != before, "Ray no longer changes the handlers: this test no longer checks anything"
+"""
+
+
+def test_batch_puts_back_the_signal_handlers_ray_replaces(captures, tmp_path):
+    """A batch that starts its own Ray leaves the process's SIGINT/SIGTERM handlers as it found them
+    (Ray's driver keeps its SIGTERM handler after shutdown), so a later in-process expand still
+    cleans up after SIGTERM. In a fresh process: this module's Ray is already initialised here."""
+    root, _, _ = captures
+    listing = tmp_path / "list.txt"
+    listing.write_text(f"{root / 'gamma'}\n")  # fails its input check at once: the test pays for Ray only
+    env = {k: v for k, v in os.environ.items() if k != "RAY_ADDRESS"}
+    run = subprocess.run([sys.executable, "-c", _HANDLERS_AFTER_BATCH, str(listing), str(tmp_path / "out")],
+                         env=env, capture_output=True, text=True, timeout=300)
+    assert run.returncode == 0, run.stderr[-3000:]
