@@ -15,10 +15,12 @@ choice for every smaller K). Then for each K and each choice (suggested, the fra
 on the same geometry (`suggest --objective frames`, ``SurfaceViews.frame_choice``), the surface
 objective with each sample weighted by the rarity of its colour (appearance, ``appearance_weights``), the frame
 objective on the same weighted samples (frames-appearance), spread:K moved one frame earlier or later
-(spread-earlier, spread-later: the benchmark's resolution), spread:K, --random subsets drawn with a fixed seed) `expand --geometry SUGGEST_OUT --annotated-frames CHOICE --labels
-annotations --no-report` (``pipeline.expand``, what the CLI calls), scored against the truth on the
-frames not chosen: wound bed Dice and the mean Dice of the tissue classes present (the lego:
-foreground Dice, its one class). "worst random" is the random subset of lowest wound-bed Dice.
+(spread-earlier, spread-later: the benchmark's resolution), spread:K, --random subsets drawn with a fixed
+seed) `expand --geometry SUGGEST_OUT --annotated-frames CHOICE --labels annotations --no-report`
+(``pipeline.expand``, what the CLI calls), scored against the truth on the frames not chosen: wound
+bed Dice and the mean Dice of the tissue classes present (the lego: foreground Dice, its one class).
+"worst random" is the random subset of lowest wound-bed Dice. `--combine` ends with, per choice, the
+(case, K, class group) cells below the threshold and those at or above the worse of spread's neighbours.
 Targets (issue 27): suggested no worse than spread by more than 0.005 on any case and class group,
 and better by at least 0.02 on the uneven capture.
 
@@ -381,7 +383,7 @@ def resolution(runs: list[dict], threshold: float = 0.005) -> list[str]:
     (mean minus spread below -``threshold``) and, where the runs have spread's one-frame neighbours,
     how many are at or above the worse of them (mean minus spread): what the benchmark can resolve.
     A case whose tissue mean is its wound bed (the lego's one class) counts once."""
-    cells: dict[str, list[float]] = {}
+    cells: dict[str, list[tuple[float, float | None]]] = {}  # choice: [(mean - spread, worse neighbour's)]
     lowest: list[float | None] = []
     for name in [c["case"] for c in runs[0]["cases"]]:
         rows = [next(c for c in r["cases"] if c["case"] == name)["by_k"] for r in runs]
@@ -395,7 +397,8 @@ def resolution(runs: list[dict], threshold: float = 0.005) -> list[str]:
                     diffs = [r[k][choice][key] - r[k]["spread"][key] for r in rows if r[k][choice][key] is not None]
                     if diffs:
                         mean[choice] = float(np.mean(diffs))
-                lowest.append(min([0.0, *(mean[c] for c in NEIGHBOURS)]) if all(c in mean for c in NEIGHBOURS) else None)
+                have = all(c in mean for c in NEIGHBOURS)
+                lowest.append(min([0.0, *(mean[c] for c in NEIGHBOURS)]) if have else None)
                 for choice, m in mean.items():
                     cells.setdefault(choice, []).append((m, lowest[-1]))
     if not cells:

@@ -58,7 +58,8 @@ def test_fit_seed_reaches_suggest_and_every_expand(tmp_path: Path) -> None:
     assert any(line.startswith("| around | 2 | appearance |") for line in table.splitlines())
     # the summary under the table: per choice, the cells below the threshold and those at or above
     # the worse of spread's one-frame neighbours, from the same means
-    groups = ["wound_bed"] + (["tissue_mean"] if runs[0]["spread"]["tissue_mean"] not in (None, runs[0]["spread"]["wound_bed"]) else [])
+    spread = runs[0]["spread"]
+    groups = ["wound_bed"] + (["tissue_mean"] if spread["tissue_mean"] not in (None, spread["wound_bed"]) else [])
     def mean_diff(choice, key):
         return np.mean([r[choice][key] - r["spread"][key] for r in runs])
     below = sum(mean_diff("frames", g) < -0.005 for g in groups)
