@@ -85,6 +85,25 @@ def _ours_to_take(signum: int) -> bool:
 
 
 @contextmanager
+def signal_handlers_kept() -> Iterator[None]:
+    """Put back this process's SIGINT and SIGTERM handlers after the block. Why: ``ray.init`` in a
+    driver (and an in-process Ray node) installs Ray's own SIGTERM handler and ``ray.shutdown``
+    leaves it; ``interruptible`` does not take over a signal someone else handles, so a later
+    expand in the same process (a notebook, a script) would no longer clean up on SIGTERM.
+    Outside the main thread (where Python cannot set handlers) it does nothing."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    saved = {s: signal.getsignal(s) for s in _SIGNALS}
+    try:
+        yield
+    finally:
+        for signum, handler in saved.items():
+            if handler is not None:  # None: set from C, cannot be put back from Python
+                signal.signal(signum, handler)
+
+
+@contextmanager
 def interruptible() -> Iterator[None]:
     """Within the block, SIGINT and SIGTERM raise ``Interrupted`` once, so ``except`` and
     ``finally`` cleanups run; a second one during that cleanup exits the process at once.

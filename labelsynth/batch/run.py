@@ -18,17 +18,14 @@ from __future__ import annotations
 
 import os
 import re
-import signal
-import threading
 import time
-from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Iterator
+from typing import Any
 
 from ..errors import CheckError, LabelsynthError
 from ..options import DeviceChoice, ExpandOptions, finite_number, whole_number
-from ..outdir import check_apart
+from ..outdir import check_apart, signal_handlers_kept
 from ..progress import make_progress
 from ..rundir import RunFolder
 from .discover import BatchError, CaptureJob, discover
@@ -103,24 +100,6 @@ def expand_capture(capture: str, output: str, out_root: str, name: str, options:
         return {"status": "failed", "reason": one_line(exc), "seconds": time.time() - t0}
     write_marker(Path(out_root), name, Marker(**marker))
     return {"status": "done", "seconds": time.time() - t0, "frames": len(result.frames), "pid": os.getpid()}
-
-
-@contextmanager
-def _signal_handlers_kept() -> Iterator[None]:
-    """Put back this process's SIGINT and SIGTERM handlers after the block. Why: ``ray.init`` in a
-    driver installs Ray's own SIGTERM handler and ``ray.shutdown`` leaves it, so a later expand in
-    the same process (a notebook, a script) would no longer clean up its partial output on SIGTERM.
-    Outside the main thread (where Ray sets no handlers either) it does nothing."""
-    if threading.current_thread() is not threading.main_thread():
-        yield
-        return
-    saved = {s: signal.getsignal(s) for s in (signal.SIGINT, signal.SIGTERM)}
-    try:
-        yield
-    finally:
-        for signum, handler in saved.items():
-            if handler is not None:  # None: set from C, cannot be put back from Python
-                signal.signal(signum, handler)
 
 
 def _connect(address: str | None):
@@ -283,8 +262,9 @@ def run_batch(
         for row in rows.values():
             landed(row)
         if todo:
-            ray_address = _run_tasks(todo, out, options, rows, bar, task, landed, address=address,
-                                     cpus=cpus_per_capture, gpus=gpus_per_capture, retries=retries)
+            with signal_handlers_kept():  # Ray leaves its SIGTERM handler behind after shutdown
+                ray_address = _run_tasks(todo, out, options, rows, bar, task, landed, address=address,
+                                         cpus=cpus_per_capture, gpus=gpus_per_capture, retries=retries)
     ordered = [rows[j.name] for j in jobs]
 
     finished = [(r.name, RunFolder(r.output).labels_path) for r in ordered if r.status in ("done", "skipped")]
@@ -306,14 +286,6 @@ def run_batch(
 def _run_tasks(todo: list[tuple[CaptureJob, Marker]], out: Path, options: ExpandOptions, rows: dict[str, BatchRow],
                bar, task, landed, *, address: str | None, cpus: int | None, gpus: float, retries: int) -> str:
     """Submit one task per capture, fill ``rows`` as they land; returns the cluster's address."""
-    with _signal_handlers_kept():
-        return _submit_and_wait(todo, out, options, rows, bar, task, landed, address=address, cpus=cpus, gpus=gpus,
-                                retries=retries)
-
-
-def _submit_and_wait(todo: list[tuple[CaptureJob, Marker]], out: Path, options: ExpandOptions,
-                     rows: dict[str, BatchRow], bar, task, landed, *, address: str | None, cpus: int | None,
-                     gpus: float, retries: int) -> str:
     ray, started = _connect(address)
     try:
         node_cpus, node_gpus = _largest_node(ray)

@@ -18,8 +18,9 @@ from ray.cluster_utils import Cluster  # noqa: E402
 
 from labelsynth.batch import ExpandOptions, run_batch  # noqa: E402
 from labelsynth.export import LabelsDataset, read_labels_h5  # noqa: E402
+from labelsynth.outdir import signal_handlers_kept  # noqa: E402
 
-from .workers import raylet_pid, signal_handlers_kept, task_pid  # noqa: E402
+from .workers import raylet_pid, task_pid  # noqa: E402
 
 pytestmark = pytest.mark.xdist_group("ray")  # one Ray at a time in the suite
 

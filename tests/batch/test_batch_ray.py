@@ -26,8 +26,9 @@ from labelsynth.batch import ExpandOptions, run_batch  # noqa: E402
 from labelsynth.batch.discover import BatchError  # noqa: E402
 from labelsynth.cli import app  # noqa: E402
 from labelsynth.export import LabelsDataset, read_labels_h5  # noqa: E402
+from labelsynth.outdir import signal_handlers_kept  # noqa: E402
 
-from .workers import descendants, local_node, raylet_pid, signal_handlers_kept, task_pid  # noqa: E402
+from .workers import descendants, local_node, raylet_pid, task_pid  # noqa: E402
 
 pytestmark = pytest.mark.xdist_group("ray")
 

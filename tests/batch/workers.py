@@ -2,17 +2,12 @@
 
 A worker is a descendant of its node's raylet; searching all of /proc for the task's process
 title could find another test's or another user's Ray worker (and a test that kills it would
-kill the wrong process), so the search starts from the raylet of the node the test owns.
-
-Also ``signal_handlers_kept``, for the fixtures that start Ray in the test process."""
+kill the wrong process), so the search starts from the raylet of the node the test owns."""
 
 from __future__ import annotations
 
-import signal
 import time
-from contextlib import contextmanager
 from pathlib import Path
-from typing import Iterator
 
 TASK_TITLE = "ray::labelsynth-expand"  # Ray's process title while a worker runs our task
 
@@ -71,16 +66,3 @@ def task_pid(raylet: int, timeout: float, title: str = TASK_TITLE) -> int | None
         if time.time() >= end:
             return None
         time.sleep(0.2)
-
-
-@contextmanager
-def signal_handlers_kept() -> Iterator[None]:
-    """Put back the test process's SIGINT/SIGTERM handlers after a block that starts and stops Ray:
-    a Ray driver keeps its own SIGTERM handler after ``ray.shutdown()``, and the tests that run later
-    in the same process (tests/fuzz/test_signals.py) expect the process's own."""
-    saved = {s: signal.getsignal(s) for s in (signal.SIGINT, signal.SIGTERM)}
-    try:
-        yield
-    finally:
-        for signum, handler in saved.items():
-            signal.signal(signum, handler)
