@@ -384,7 +384,7 @@ def resolution(runs: list[dict], threshold: float = 0.005) -> list[str]:
     how many are at or above the worse of them (mean minus spread): what the benchmark can resolve.
     A case whose tissue mean is its wound bed (the lego's one class) counts once."""
     cells: dict[str, list[tuple[float, float | None]]] = {}  # choice: [(mean - spread, worse neighbour's)]
-    lowest: list[float | None] = []
+    n_cells = 0
     for name in [c["case"] for c in runs[0]["cases"]]:
         rows = [next(c for c in r["cases"] if c["case"] == name)["by_k"] for r in runs]
         for k in rows[0]:
@@ -397,13 +397,13 @@ def resolution(runs: list[dict], threshold: float = 0.005) -> list[str]:
                     diffs = [r[k][choice][key] - r[k]["spread"][key] for r in rows if r[k][choice][key] is not None]
                     if diffs:
                         mean[choice] = float(np.mean(diffs))
-                have = all(c in mean for c in NEIGHBOURS)
-                lowest.append(min([0.0, *(mean[c] for c in NEIGHBOURS)]) if have else None)
+                n_cells += 1
+                worse = min([0.0, *(mean[c] for c in NEIGHBOURS)]) if all(c in mean for c in NEIGHBOURS) else None
                 for choice, m in mean.items():
-                    cells.setdefault(choice, []).append((m, lowest[-1]))
+                    cells.setdefault(choice, []).append((m, worse))
     if not cells:
         return []
-    lines = [f"of {len(lowest)} (case, K, class group) cells, mean over {len(runs)} run(s) minus spread:"]
+    lines = [f"of {n_cells} (case, K, class group) cells, mean over {len(runs)} run(s) minus spread:"]
     for choice, vals in cells.items():
         line = f"  {choice}: {sum(m < -threshold for m, _ in vals)} below -{threshold}"
         if all(lo is not None for _, lo in vals) and choice not in NEIGHBOURS:
